@@ -1,0 +1,210 @@
+"""ASCII layouts and region grids -> static numpy arrays (validated once, outside jit).
+
+A map is two text files in ``jaxusar/envs/layouts/``:
+
+``NAME.txt``          the layout. Legend: ``#`` wall, ``X`` obstacle, ``.`` floor, ``V`` victim,
+                      ``A`` agent start. Agents and victims are numbered in row-major reading order.
+``NAME.regions.txt``  the region grid (the paper's graph view, Fig. 3): one letter per cell, ``#``
+                      exactly on the wall and obstacle cells; its header names each letter
+                      (``T top_room room``; the kind is ``room`` or ``hall``).
+
+Each file may start with a header that ends at a line ``---``; header lines starting with ``;``
+are comments. A file without ``---`` is all grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+LAYOUT_DIR = Path(__file__).parent / "layouts"
+LAYOUT_CHARS = {"#": "wall", "X": "obstacle", ".": "floor", "V": "victim", "A": "agent start"}
+REGION_KINDS = ("room", "hall")
+
+
+class LayoutError(ValueError):
+    """A layout or region grid that cannot describe a valid map."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Layout:
+    """A parsed, validated map. All arrays are numpy (static: closed over by the jitted env).
+
+    Attributes:
+      name:          the map's name.
+      wall:          bool[H, W], wall cells.
+      obstacle:      bool[H, W], obstacle cells.
+      agent_start:   int32[n_agents, 2], (row, col) of each agent's start, row-major order.
+      victim_pos:    int32[n_victims, 2], (row, col) of each victim, row-major order.
+      region:        int32[H, W], region index of each cell, -1 on wall and obstacle cells.
+      region_names:  tuple[str], one per region, in order of first appearance in the header.
+      region_kinds:  tuple[str], ``room`` or ``hall`` per region.
+    """
+
+    name: str
+    wall: np.ndarray
+    obstacle: np.ndarray
+    agent_start: np.ndarray
+    victim_pos: np.ndarray
+    region: np.ndarray
+    region_names: tuple[str, ...]
+    region_kinds: tuple[str, ...]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.wall.shape
+
+    @property
+    def blocked(self) -> np.ndarray:
+        return self.wall | self.obstacle
+
+    def to_ascii(self) -> str:
+        """The layout as the ASCII grid it was parsed from."""
+        grid = np.full(self.shape, ".", dtype="<U1")
+        grid[self.wall] = "#"
+        grid[self.obstacle] = "X"
+        for r, c in self.victim_pos:
+            grid[r, c] = "V"
+        for r, c in self.agent_start:
+            grid[r, c] = "A"
+        return "\n".join("".join(row) for row in grid)
+
+    def subset(self, agents=None, victims=None) -> "Layout":
+        """The same map with only the given agents and victims (by index; order kept).
+
+        Used for the paper's sub-tasks, where "the other agents and victims are removed" (Sec. IV-B).
+        """
+        agents = range(len(self.agent_start)) if agents is None else list(agents)
+        victims = range(len(self.victim_pos)) if victims is None else list(victims)
+        return dataclasses.replace(
+            self,
+            agent_start=self.agent_start[list(agents)].reshape(-1, 2),
+            victim_pos=self.victim_pos[list(victims)].reshape(-1, 2),
+        )
+
+
+def _split_header(text: str, what: str) -> tuple[list[str], list[str]]:
+    lines = text.splitlines()
+    if "---" in [ln.strip() for ln in lines]:
+        cut = [ln.strip() for ln in lines].index("---")
+        header, grid = lines[:cut], lines[cut + 1 :]
+    else:
+        header, grid = [], lines
+    header = [ln.strip() for ln in header if ln.strip() and not ln.strip().startswith(";")]
+    grid = [ln.rstrip("\n\r") for ln in grid]
+    while grid and not grid[-1].strip():
+        grid.pop()
+    while grid and not grid[0].strip():
+        grid.pop(0)
+    if not grid:
+        raise LayoutError(f"{what}: no grid rows found")
+    widths = {len(row) for row in grid}
+    if len(widths) != 1:
+        bad = next(i for i, row in enumerate(grid) if len(row) != len(grid[0]))
+        raise LayoutError(
+            f"{what}: ragged grid: row 0 has {len(grid[0])} columns but row {bad} has {len(grid[bad])}"
+        )
+    return header, grid
+
+
+def parse_layout(text: str, regions_text: str, name: str = "<string>") -> Layout:
+    """Parse and validate a layout and its region grid. Raises LayoutError naming the problem."""
+    _, grid = _split_header(text, f"layout {name!r}")
+    chars = np.array([list(row) for row in grid])
+    unknown = sorted(set(chars.ravel()) - set(LAYOUT_CHARS))
+    if unknown:
+        r, c = np.argwhere(chars == unknown[0])[0]
+        raise LayoutError(
+            f"layout {name!r}: unknown character {unknown[0]!r} at row {r}, col {c}; "
+            f"legend: " + ", ".join(f"{k!r} {v}" for k, v in LAYOUT_CHARS.items())
+        )
+    wall, obstacle = chars == "#", chars == "X"
+    agent_start = np.argwhere(chars == "A").astype(np.int32)
+    victim_pos = np.argwhere(chars == "V").astype(np.int32)  # argwhere is row-major order
+    if len(agent_start) == 0:
+        raise LayoutError(f"layout {name!r}: no agent start ('A')")
+    if len(victim_pos) == 0:
+        raise LayoutError(f"layout {name!r}: no victim ('V')")
+
+    region, names, kinds = _parse_regions(regions_text, chars.shape, wall | obstacle, name)
+    layout = Layout(name, wall, obstacle, agent_start, victim_pos, region, names, kinds)
+    _check_reachable(layout)
+    return layout
+
+
+def _parse_regions(text, shape, blocked, name):
+    what = f"region grid of {name!r}"
+    header, grid = _split_header(text, what)
+    letters, names, kinds = [], [], []
+    for line in header:
+        parts = line.split()
+        if len(parts) != 3 or len(parts[0]) != 1:
+            raise LayoutError(f"{what}: legend line {line!r} is not 'letter name kind'")
+        letter, rname, kind = parts
+        if letter in ("#", ".") or letter in letters:
+            raise LayoutError(f"{what}: legend letter {letter!r} is reserved or repeated")
+        if kind not in REGION_KINDS:
+            raise LayoutError(f"{what}: region {rname!r} has kind {kind!r}; expected one of {REGION_KINDS}")
+        letters.append(letter), names.append(rname), kinds.append(kind)
+    if not letters:
+        raise LayoutError(f"{what}: no legend lines ('letter name kind') before '---'")
+    cells = np.array([list(row) for row in grid])
+    if cells.shape != shape:
+        raise LayoutError(f"{what}: grid is {cells.shape[0]}x{cells.shape[1]} but the layout is {shape[0]}x{shape[1]}")
+    mismatch = np.argwhere((cells == "#") != blocked)
+    if len(mismatch):
+        r, c = mismatch[0]
+        want = "'#' (wall or obstacle)" if blocked[r, c] else "a region letter (open cell)"
+        raise LayoutError(f"{what}: cell ({r}, {c}) is {cells[r, c]!r} but the layout needs {want} there")
+    unknown = sorted(set(cells[~blocked].ravel()) - set(letters))
+    if unknown:
+        r, c = np.argwhere(cells == unknown[0])[0]
+        raise LayoutError(f"{what}: letter {unknown[0]!r} at ({r}, {c}) is not in the legend {letters}")
+    region = np.full(shape, -1, dtype=np.int32)
+    for i, letter in enumerate(letters):
+        region[cells == letter] = i
+    return region, tuple(names), tuple(kinds)
+
+
+def _check_reachable(layout: Layout) -> None:
+    """Every victim must be triageable: some agent can reach a cell next to it (ignoring other agents)."""
+    h, w = layout.shape
+    solid = layout.blocked.copy()
+    solid[tuple(layout.victim_pos.T)] = True
+    seen = np.zeros((h, w), bool)
+    queue = deque(map(tuple, layout.agent_start))
+    for cell in queue:
+        seen[cell] = True
+    while queue:
+        r, c = queue.popleft()
+        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+            nr, nc = r + dr, c + dc
+            if 0 <= nr < h and 0 <= nc < w and not solid[nr, nc] and not seen[nr, nc]:
+                seen[nr, nc] = True
+                queue.append((nr, nc))
+    for v, (r, c) in enumerate(layout.victim_pos):
+        near = [(r + dr, c + dc) for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))]
+        if not any(0 <= nr < h and 0 <= nc < w and seen[nr, nc] for nr, nc in near):
+            raise LayoutError(f"layout {layout.name!r}: victim {v} at ({r}, {c}) cannot be reached by any agent")
+
+
+def available_layouts() -> list[str]:
+    return sorted(p.name[: -len(".txt")] for p in LAYOUT_DIR.glob("*.txt") if not p.name.endswith(".regions.txt"))
+
+
+def load_layout(name: str) -> Layout:
+    """Load a shipped layout by name (``two_rooms``) or from a path to a ``.txt`` layout file."""
+    path = Path(name)
+    if path.suffix == ".txt" and path.exists():
+        layout_path = path
+    elif (LAYOUT_DIR / f"{name}.txt").exists():
+        layout_path = LAYOUT_DIR / f"{name}.txt"
+    else:
+        raise LayoutError(f"unknown map {name!r}; available: {', '.join(available_layouts())} (or a path to a .txt layout)")
+    regions_path = layout_path.with_name(layout_path.name[: -len(".txt")] + ".regions.txt")
+    if not regions_path.exists():
+        raise LayoutError(f"map {name!r}: no region grid beside the layout (expected {regions_path})")
+    return parse_layout(layout_path.read_text(), regions_path.read_text(), name=layout_path.stem)

@@ -1,0 +1,142 @@
+"""Exact planning by breadth-first search: the ground truth that defines "optimal" (PAPER.md).
+
+The search runs the env's own ``step`` (jit + vmap over the frontier and every joint action), so the
+planner and the learners share one definition of the rules. States are encoded as integers
+(each agent's (row, col, dir), then the triaged bits) and de-duplicated with numpy set operations,
+so memory grows with the reachable states, not the product space.
+
+``optimal_team_steps(env)``: fewest joint steps (TRIAGE actions count) for the whole team to triage
+every victim from the reset state, searching the joint state, so agents blocking each other is exact.
+``agent_distances(env, agent)``: the per-agent shortest distances (the agent alone on the map,
+victims as obstacles) to enter each region and to triage each victim; the sub-policies' optimum.
+"""
+
+from __future__ import annotations
+
+import itertools
+from functools import lru_cache
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxusar.envs.usar import N_ACTIONS, EnvState, USAREnv
+
+
+class Unreachable(RuntimeError):
+    """The goal cannot be reached from the start state."""
+
+
+class _Codec:
+    """Mixed-radix integer <-> batched EnvState (t is not part of the planning state)."""
+
+    def __init__(self, env: USAREnv):
+        self.env = env
+        self.cell_states = env.height * env.width * 4
+        self.n_agents, self.n_victims = env.n_agents, env.n_victims
+
+    def encode(self, pos: np.ndarray, dirs: np.ndarray, triaged: np.ndarray) -> np.ndarray:
+        code = np.zeros(len(dirs), np.int64)
+        for i in range(self.n_agents):
+            cell = (pos[:, i, 0].astype(np.int64) * self.env.width + pos[:, i, 1]) * 4 + dirs[:, i]
+            code = code * self.cell_states + cell
+        for v in range(self.n_victims):
+            code = code * 2 + triaged[:, v]
+        return code
+
+    def decode(self, code: np.ndarray):
+        code = code.astype(np.int64).copy()
+        triaged = np.zeros((len(code), self.n_victims), bool)
+        for v in reversed(range(self.n_victims)):
+            triaged[:, v] = code % 2
+            code //= 2
+        pos = np.zeros((len(code), self.n_agents, 2), np.int32)
+        dirs = np.zeros((len(code), self.n_agents), np.int32)
+        for i in reversed(range(self.n_agents)):
+            cell = code % self.cell_states
+            code //= self.cell_states
+            dirs[:, i] = cell % 4
+            pos[:, i, 0] = (cell // 4) // self.env.width
+            pos[:, i, 1] = (cell // 4) % self.env.width
+        return pos, dirs, triaged
+
+
+@lru_cache(maxsize=32)
+def _expander(env: USAREnv):
+    joint = jnp.asarray(list(itertools.product(range(N_ACTIONS), repeat=env.n_agents)), jnp.int32)
+
+    def successors(pos, dirs, triaged):
+        state = EnvState(pos, dirs, triaged, jnp.zeros(pos.shape[:1], jnp.int32))
+
+        def one(s):
+            step = lambda a: env.step(None, s, a)[1]
+            return jax.vmap(step)(joint)
+
+        nxt = jax.vmap(one)(state)
+        return nxt.agent_pos, nxt.agent_dir, nxt.triaged
+
+    return jax.jit(successors)
+
+
+def _bfs(env: USAREnv, start: EnvState, is_goal, max_states: int) -> int:
+    """Fewest joint steps from ``start`` to a state where ``is_goal(pos, dirs, triaged)`` holds."""
+    codec, expand = _Codec(env), _expander(env)
+    frontier = codec.encode(np.asarray(start.agent_pos)[None], np.asarray(start.agent_dir)[None],
+                            np.asarray(start.triaged)[None])
+    visited = frontier
+    depth = 0
+    while len(frontier):
+        pos, dirs, tri = codec.decode(frontier)
+        if np.any(is_goal(pos, dirs, tri)):
+            return depth
+        pad = 1 << max(int(len(frontier) - 1).bit_length(), 4)  # bucketed sizes: few compiles
+        padded = [np.concatenate([x, np.repeat(x[:1], pad - len(x), 0)]) for x in (pos, dirs, tri)]
+        npos, ndirs, ntri = (np.asarray(x)[: len(frontier)] for x in expand(*padded))
+        codes = codec.encode(npos.reshape(-1, env.n_agents, 2), ndirs.reshape(-1, env.n_agents),
+                             ntri.reshape(-1, env.n_victims))
+        frontier = np.setdiff1d(np.unique(codes), visited, assume_unique=True)
+        visited = np.union1d(visited, frontier)
+        depth += 1
+        if len(visited) > max_states:
+            raise MemoryError(f"planner visited over {max_states} states on {env.layout.name!r}; "
+                              "raise max_states or plan on a smaller map")
+    raise Unreachable(f"goal unreachable on {env.layout.name!r}")
+
+
+def optimal_team_steps(env: USAREnv, max_states: int = 20_000_000) -> int:
+    """Fewest joint primitive steps for the team to triage every victim from the reset state.
+
+    Exact: searches the joint state of all agents, so agents blocking each other is accounted for.
+    Ignores the horizon (an optimum above it means the map cannot be solved within it).
+    """
+    return _bfs(env, env.initial_state(), lambda pos, dirs, tri: tri.all(-1), max_states)
+
+
+def agent_distances(env: USAREnv, agent: int, start_pos=None, start_dir=None) -> dict[str, np.ndarray]:
+    """Shortest single-agent distances for ``agent`` alone on the map (other agents removed).
+
+    Returns ``to_region`` int[R] (steps until the agent stands in region r; 0 if it starts there) and
+    ``to_triage`` int[n_victims] (steps until victim v is triaged, the TRIAGE action included).
+    Unreachable entries are -1. ``start_pos``/``start_dir`` default to the agent's reset state.
+    """
+    from jaxusar.envs import USAREnv as _Env
+
+    if not 0 <= agent < env.n_agents:
+        raise ValueError(f"agent {agent} out of range 0..{env.n_agents - 1}")
+    solo = _Env(env.layout.subset(agents=[agent]), horizon=env.horizon, start_dir=env.start_dir)
+    start = solo.initial_state()
+    if start_pos is not None:
+        start = start.replace(agent_pos=jnp.asarray([start_pos], jnp.int32))
+    if start_dir is not None:
+        start = start.replace(agent_dir=jnp.asarray([start_dir], jnp.int32))
+    region = env.graph.cell_region
+
+    def steps(goal):
+        try:
+            return _bfs(solo, start, goal, max_states=10_000_000)
+        except Unreachable:
+            return -1
+
+    to_region = [steps(lambda p, d, t, r=r: region[p[:, 0, 0], p[:, 0, 1]] == r) for r in range(env.graph.n_regions)]
+    to_triage = [steps(lambda p, d, t, v=v: t[:, v]) for v in range(env.n_victims)]
+    return {"to_region": np.asarray(to_region), "to_triage": np.asarray(to_triage)}
