@@ -7,6 +7,7 @@ so memory grows with the reachable states, not the product space.
 
 ``optimal_team_steps(env)``: fewest joint steps (TRIAGE actions count) for the whole team to triage
 every victim from the reset state, searching the joint state, so agents blocking each other is exact.
+``optimal_team_plan(env)``: one such shortest joint action sequence (the same search, recording parents).
 ``agent_distances(env, agent)``: the per-agent shortest distances (the agent alone on the map,
 victims as obstacles) to enter each region and to triage each victim; the sub-policies' optimum.
 """
@@ -61,9 +62,14 @@ class _Codec:
         return pos, dirs, triaged
 
 
+def _joint_actions(n_agents: int) -> np.ndarray:
+    """int32[N_ACTIONS ** n_agents, n_agents]: every joint action; row k is the expander's k-th successor."""
+    return np.asarray(list(itertools.product(range(N_ACTIONS), repeat=n_agents)), np.int32).reshape(-1, n_agents)
+
+
 @lru_cache(maxsize=32)
 def _expander(env: USAREnv):
-    joint = jnp.asarray(list(itertools.product(range(N_ACTIONS), repeat=env.n_agents)), jnp.int32)
+    joint = jnp.asarray(_joint_actions(env.n_agents))
 
     def successors(pos, dirs, triaged):
         state = EnvState(pos, dirs, triaged, jnp.zeros(pos.shape[:1], jnp.int32))
@@ -78,23 +84,36 @@ def _expander(env: USAREnv):
     return jax.jit(successors)
 
 
-def _bfs(env: USAREnv, start: EnvState, is_goal, max_states: int) -> int:
-    """Fewest joint steps from ``start`` to a state where ``is_goal(pos, dirs, triaged)`` holds."""
+def _search(env: USAREnv, start: EnvState, is_goal, max_states: int, record: bool = False):
+    """Breadth-first search from ``start`` to a state where ``is_goal(pos, dirs, triaged)`` holds.
+
+    Returns ``(depth, plan)``: the fewest joint steps, and with ``record`` one shortest plan int32[depth,
+    n_agents] (else None). Recording keeps, per depth, each new state's parent and the joint action that
+    first reached it; ties go to the smallest state code and the first joint action, so plans are deterministic.
+    """
     codec, expand = _Codec(env), _expander(env)
     frontier = codec.encode(np.asarray(start.agent_pos)[None], np.asarray(start.agent_dir)[None],
                             np.asarray(start.triaged)[None])
     visited = frontier
     depth = 0
+    layers = []  # with record: per depth >= 1, (parent index in the previous frontier, joint action index)
     while len(frontier):
         pos, dirs, tri = codec.decode(frontier)
-        if np.any(is_goal(pos, dirs, tri)):
-            return depth
+        goal = np.flatnonzero(is_goal(pos, dirs, tri))
+        if len(goal):
+            return depth, (_backtrack(layers, goal[0], env.n_agents) if record else None)
         pad = 1 << max(int(len(frontier) - 1).bit_length(), 4)  # bucketed sizes: few compiles
         padded = [np.concatenate([x, np.repeat(x[:1], pad - len(x), 0)]) for x in (pos, dirs, tri)]
         npos, ndirs, ntri = (np.asarray(x)[: len(frontier)] for x in expand(*padded))
         codes = codec.encode(npos.reshape(-1, env.n_agents, 2), ndirs.reshape(-1, env.n_agents),
                              ntri.reshape(-1, env.n_victims))
-        frontier = np.setdiff1d(np.unique(codes), visited, assume_unique=True)
+        if record:  # codes is row-major [frontier, joint action]: first = parent * n_joint + action
+            codes, first = np.unique(codes, return_index=True)
+            new = ~np.isin(codes, visited, assume_unique=True)
+            frontier = codes[new]
+            layers.append(np.divmod(first[new], N_ACTIONS ** env.n_agents))
+        else:
+            frontier = np.setdiff1d(np.unique(codes), visited, assume_unique=True)
         visited = np.union1d(visited, frontier)
         depth += 1
         if len(visited) > max_states:
@@ -103,13 +122,40 @@ def _bfs(env: USAREnv, start: EnvState, is_goal, max_states: int) -> int:
     raise Unreachable(f"goal unreachable on {env.layout.name!r}")
 
 
+def _backtrack(layers, index: int, n_agents: int) -> np.ndarray:
+    """Joint actions leading to state ``index`` of the last frontier, following recorded parents."""
+    joint, plan = _joint_actions(n_agents), []
+    for parent, action in reversed(layers):
+        plan.append(joint[action[index]])
+        index = parent[index]
+    return np.asarray(plan[::-1], np.int32).reshape(-1, n_agents)
+
+
+def _bfs(env: USAREnv, start: EnvState, is_goal, max_states: int) -> int:
+    """Fewest joint steps from ``start`` to a state where ``is_goal(pos, dirs, triaged)`` holds."""
+    return _search(env, start, is_goal, max_states)[0]
+
+
+def _all_triaged(pos, dirs, triaged) -> np.ndarray:
+    return triaged.all(-1)
+
+
 def optimal_team_steps(env: USAREnv, max_states: int = 20_000_000) -> int:
     """Fewest joint primitive steps for the team to triage every victim from the reset state.
 
     Exact: searches the joint state of all agents, so agents blocking each other is accounted for.
     Ignores the horizon (an optimum above it means the map cannot be solved within it).
     """
-    return _bfs(env, env.initial_state(), lambda pos, dirs, tri: tri.all(-1), max_states)
+    return _bfs(env, env.initial_state(), _all_triaged, max_states)
+
+
+def optimal_team_plan(env: USAREnv, max_states: int = 20_000_000) -> np.ndarray:
+    """One shortest joint plan from the reset state: int32[T, n_agents] actions, T = ``optimal_team_steps(env)``.
+
+    Replaying it through ``env.step`` triages every victim at step T (when T <= horizon). Among the many
+    optimal plans it returns a fixed one; agents with slack may spend it on no-op turns or triages.
+    """
+    return _search(env, env.initial_state(), _all_triaged, max_states, record=True)[1]
 
 
 def agent_distances(env: USAREnv, agent: int, start_pos=None, start_dir=None) -> dict[str, np.ndarray]:

@@ -114,7 +114,7 @@ def parse_layout(text: str, regions_text: str, name: str = "<string>") -> Layout
     """Parse and validate a layout and its region grid. Raises LayoutError naming the problem."""
     _, grid = _split_header(text, f"layout {name!r}")
     chars = np.array([list(row) for row in grid])
-    unknown = sorted(set(chars.ravel()) - set(LAYOUT_CHARS))
+    unknown = sorted(map(str, set(chars.ravel()) - set(LAYOUT_CHARS)))  # str: np.str_ reprs as np.str_(...)
     if unknown:
         r, c = np.argwhere(chars == unknown[0])[0]
         raise LayoutError(
@@ -158,8 +158,8 @@ def _parse_regions(text, shape, blocked, name):
     if len(mismatch):
         r, c = mismatch[0]
         want = "'#' (wall or obstacle)" if blocked[r, c] else "a region letter (open cell)"
-        raise LayoutError(f"{what}: cell ({r}, {c}) is {cells[r, c]!r} but the layout needs {want} there")
-    unknown = sorted(set(cells[~blocked].ravel()) - set(letters))
+        raise LayoutError(f"{what}: cell ({r}, {c}) is {str(cells[r, c])!r} but the layout needs {want} there")
+    unknown = sorted(map(str, set(cells[~blocked].ravel()) - set(letters)))
     if unknown:
         r, c = np.argwhere(cells == unknown[0])[0]
         raise LayoutError(f"{what}: letter {unknown[0]!r} at ({r}, {c}) is not in the legend {letters}")

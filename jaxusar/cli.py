@@ -1,0 +1,143 @@
+"""The ``jaxusar`` command: a thin argparse front over the package (DESIGN.md, layer ``cli``).
+
+Each subcommand is one ``add_<name>(subparsers)`` function that declares its arguments and sets
+``run`` to the function doing the work; ``COMMANDS`` lists them. Bad user input (an unknown map, an
+out-of-range override, an unwritable output folder) ends with one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+class UsageError(Exception):
+    """Bad input from the command line: reported in one line, exit status 2, no traceback."""
+
+
+def make_env(args: argparse.Namespace, **overrides):
+    """The env named by ``--map`` with the given overrides; bad values become a UsageError."""
+    from jaxusar.envs import LayoutError, make
+
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    try:
+        return make(args.map, **overrides)
+    except (LayoutError, ValueError, TypeError) as err:
+        raise UsageError(str(err)) from None
+
+
+def output_dir(path: Path) -> Path:
+    """Create ``path`` (and parents) for a command's files; failure is a UsageError."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"cannot create the output folder {str(path)!r}: {err.strerror or err}") from None
+    return path
+
+
+# -- demo -----------------------------------------------------------------------------------------
+def add_demo(subparsers) -> None:
+    from jaxusar.envs import available_layouts
+
+    p = subparsers.add_parser(
+        "demo", help="show a map, its region graph and the planner's optimum; play and draw an optimal episode",
+        description="Print the map, its region graph, the exact optimal team steps and per-agent distances, "
+                    "then play one optimal joint plan and save DIR/map.png and DIR/episode.png.")
+    p.add_argument("--map", default="two_rooms",
+                   help=f"a shipped map ({', '.join(available_layouts())}) or a path to a .txt layout "
+                        "(default: two_rooms)")
+    p.add_argument("--out", type=Path, default=Path("runs/demo"), metavar="DIR",
+                   help="folder for the pictures (default: runs/demo)")
+    p.add_argument("--horizon", type=int, default=None, metavar="N",
+                   help="episode step cap (default: the env's, 100)")
+    p.set_defaults(run=demo)
+
+
+def demo(args: argparse.Namespace) -> int:
+    from jaxusar.envs import ACTION_NAMES, DIRECTION_NAMES
+    from jaxusar.envs.render import render_ascii, render_state, rollout_states, save_episode_strip
+    from jaxusar.planning import agent_distances, optimal_team_plan, optimal_team_steps
+
+    env = make_env(args, horizon=args.horizon)
+    out = output_dir(args.out)  # before the work, so a bad --out fails fast
+    print(repr(env))
+    _, state = env.reset(None)
+    print("\nReset state ('^>v<' medics by facing, 'V' victim, '+' triaged, '#' wall, 'X' obstacle):")
+    print(render_ascii(env, state))
+
+    graph = env.graph
+    starts = env.layout.agent_start
+    print(f"\nRegion graph ({graph.n_regions} region{'s' if graph.n_regions != 1 else ''}):")
+    for r, (name, kind) in enumerate(zip(graph.names, graph.kinds)):
+        victims = np.flatnonzero(graph.victim_region == r).tolist()
+        agents = np.flatnonzero(graph.cell_region[tuple(starts.T)] == r).tolist()
+        cells = int((graph.cell_region == r).sum())
+        print(f"  {r}  {name:<14} {kind:<5} {cells:3d} cells   victims {str(victims):<8} agents at start {agents}")
+    print("  edges: " + (", ".join(f"{a} -- {b}" for a, b in graph.edges()) or "(none)"))
+
+    steps = optimal_team_steps(env)
+    print(f"\nOptimal team steps from the reset state (exact joint BFS): {steps}")
+    print("Per-agent shortest steps, each agent alone on the map (to enter a region / to triage a victim):")
+    for i, (r, c) in enumerate(starts):
+        dist = agent_distances(env, i)
+        regions = "  ".join(f"{n}={d}" for n, d in zip(graph.names, dist["to_region"]))
+        triage = "  ".join(f"victim {v}={d}" for v, d in enumerate(dist["to_triage"]))
+        print(f"  agent {i} at ({r}, {c}) facing {DIRECTION_NAMES[env.start_dir]}: to_region {regions};"
+              f" to_triage {triage}")
+
+    plan = optimal_team_plan(env)
+    states, rewards = rollout_states(env, plan)
+    played = len(rewards)
+    print(f"\nOne optimal joint plan ({len(plan)} steps), played through env.step:")
+    names = [f"agent {i}" for i in range(env.n_agents)]
+    print("   t  " + "".join(f"{n:<12}" for n in names) + "reward  triaged")
+    for t in range(played):
+        acts = "".join(f"{ACTION_NAMES[a]:<12}" for a in plan[t])
+        print(f"  {t + 1:2d}  {acts}{rewards[t]:6g}  {np.asarray(states[t + 1].triaged).astype(int)}")
+    print("\nFinal state:")
+    print(render_ascii(env, states[-1]))
+    all_triaged = bool(np.all(states[-1].triaged))
+    outcome = "all victims triaged" if all_triaged else f"the horizon of {env.horizon} steps ended it first"
+    print(f"Return {rewards.sum():g} in {played} steps ({outcome}).")
+
+    map_png = out / "map.png"
+    ax = render_state(env, states[0], title=f"{env.layout.name}: reset state", legend=True)
+    ax.figure.savefig(map_png, dpi=120, bbox_inches="tight")
+    strip = save_episode_strip(
+        env, states, out / "episode.png", rewards=rewards,
+        suptitle=f"{env.layout.name}: an optimal joint plan, {played} of {steps} steps played, return {rewards.sum():g}")
+    print(f"\nWrote {map_png}\nWrote {strip}")
+    return 0
+
+
+# -- entry point ----------------------------------------------------------------------------------
+COMMANDS = (add_demo,)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jaxusar import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="jaxusar", description="Multi-agent hierarchical RL in urban search and rescue, in JAX.")
+    parser.add_argument("--version", action="version", version=f"jaxusar {__version__}")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in COMMANDS:
+        add(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``jaxusar COMMAND ...``; returns the exit status (bad input raises SystemExit(2))."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except UsageError as err:
+        print(f"jaxusar {args.command}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    sys.exit(main())
