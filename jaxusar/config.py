@@ -1,0 +1,213 @@
+"""Typed, frozen experiment configs loaded from YAML and validated before anything compiles.
+
+A config file has up to four sections, each a frozen dataclass below::
+
+    algo: iql                 # which learner (jaxusar/algos/<algo>.py)
+    env:   {map: two_rooms, horizon: 300, ...}
+    dqn:   {hidden: [64, 64], lr: 0.0005, ...}
+    train: {episodes: 5000, test_every: 50, ...}
+    seed: 0
+
+Unknown keys, wrong types and impossible values raise ``ConfigError`` naming the dotted key.
+``--set train.episodes=200`` style overrides go through the same validation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A config that cannot be run; the message names the offending key."""
+
+
+def _field(default, check=None, doc=""):
+    return dataclasses.field(default=default, metadata={"check": check, "doc": doc})
+
+
+def _positive(x):
+    return x > 0
+
+
+def _non_negative(x):
+    return x >= 0
+
+
+def _unit_interval(x):
+    return 0 <= x <= 1
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    map: str = _field("two_rooms", doc="shipped map name or path to a .txt layout")
+    horizon: int = _field(300, _positive, "episode cap; the paper's figures use 300")
+    triage_reward: float = _field(100.0, doc="team reward per newly triaged victim")
+    step_penalty: float = _field(0.0, doc="team reward added every step")
+    start_dir: str = _field("NORTH", lambda s: s.upper() in ("EAST", "SOUTH", "WEST", "NORTH"), "EAST/SOUTH/WEST/NORTH")
+
+    def overrides(self) -> dict:
+        return {k: getattr(self, k) for k in ("horizon", "triage_reward", "step_penalty", "start_dir")}
+
+
+@dataclasses.dataclass(frozen=True)
+class DQNConfig:
+    hidden: tuple[int, ...] = _field((64, 64), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
+    lr: float = _field(5e-4, _positive, "Adam learning rate")
+    gamma: float = _field(0.99, lambda g: 0 < g <= 1, "discount, in (0, 1]")
+    batch_size: int = _field(32, _positive)
+    buffer_capacity: int = _field(50_000, _positive, "replay rows per learner")
+    learning_starts: int = _field(1_000, _non_negative, "env steps before the first update")
+    train_every: int = _field(4, _positive, "env steps per gradient update")
+    target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")
+    tau: float = _field(1.0, lambda t: 0 < t <= 1, "1 = hard copy every target_update_every; < 1 = Polyak each update")
+    double_dqn: bool = _field(False)
+    loss: str = _field("huber", lambda s: s in ("huber", "mse"), "huber or mse")
+    max_grad_norm: float = _field(10.0, _positive)
+    eps_start: float = _field(1.0, _unit_interval)
+    eps_end: float = _field(0.05, _unit_interval)
+    eps_decay_steps: int = _field(50_000, _positive, "env steps of the linear epsilon decay")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    episodes: int = _field(5000, _positive, "training episodes per trial")
+    test_every: int = _field(50, _positive, "a greedy test episode every this many training episodes")
+    chunk_steps: int = _field(20_000, _positive, "env steps per jitted chunk (progress and checkpoints between chunks)")
+    optimal_slack: int = _field(0, _non_negative, "a test is optimal within planner optimum + this many steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    algo: str = _field("iql", doc="learner name")
+    seed: int = _field(0, _non_negative)
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
+    dqn: DQNConfig = dataclasses.field(default_factory=DQNConfig)
+    train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def hash(self) -> str:
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+
+    def validate(self) -> "ExperimentConfig":
+        """Checks that span several fields."""
+        d, t = self.dqn, self.train
+        if d.buffer_capacity < d.batch_size:
+            raise ConfigError(f"dqn.buffer_capacity={d.buffer_capacity} is smaller than dqn.batch_size={d.batch_size}")
+        if d.eps_end > d.eps_start:
+            raise ConfigError(f"dqn.eps_end={d.eps_end} is above dqn.eps_start={d.eps_start}")
+        if t.test_every > t.episodes:
+            raise ConfigError(f"train.test_every={t.test_every} exceeds train.episodes={t.episodes}: no test would run")
+        if t.chunk_steps < d.train_every:
+            raise ConfigError(f"train.chunk_steps={t.chunk_steps} is below dqn.train_every={d.train_every}")
+        return self
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        (elem, _) = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return tuple(_coerce(v, elem, f"{key}[{i}]") for i, v in enumerate(value))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true/false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{key}: unsupported type {tp}")  # pragma: no cover
+
+
+def from_dict(cls, data: dict, prefix: str = ""):
+    """Build a (nested) config dataclass from a dict, validating every key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a mapping, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown key {prefix + unknown[0]!r}; allowed under {prefix.rstrip('.') or 'top level'}: {sorted(fields)}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in data.items():
+        key, tp = prefix + name, hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = from_dict(tp, value, key + ".")
+            continue
+        value = _coerce(value, tp, key)
+        check = fields[name].metadata.get("check")
+        if check is not None and not check(value):
+            doc = fields[name].metadata.get("doc")
+            raise ConfigError(f"{key}={value!r} is out of range" + (f" ({doc})" if doc else ""))
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def parse_set(items: list[str]) -> dict:
+    """``["train.episodes=200", "dqn.hidden=[32,32]"]`` -> nested dict (values parsed as YAML)."""
+    out: dict = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected key=value, e.g. train.episodes=200")
+        key, raw = item.split("=", 1)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {key}: cannot parse value {raw!r}: {e}") from None
+        node = out
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: {part!r} is not a section")
+        node[parts[-1]] = value
+    return out
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def load(path: str | Path | None = None, sets: list[str] | None = None, defaults: dict | None = None,
+         cls=ExperimentConfig):
+    """Load a YAML config (or only ``defaults``), apply ``--set`` overrides, validate, return it frozen."""
+    data: dict = dict(defaults or {})
+    if path is not None:
+        path = Path(path)
+        if not path.exists():
+            raise ConfigError(f"config file {str(path)!r} does not exist")
+        try:
+            loaded = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"config file {str(path)!r}: expected a mapping at the top level")
+        data = _merge(data, loaded)
+    data = _merge(data, parse_set(sets or []))
+    cfg = from_dict(cls, data)
+    return cfg.validate() if hasattr(cfg, "validate") else cfg

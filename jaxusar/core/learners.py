@@ -1,0 +1,114 @@
+"""The learner protocol the trainer drives, and the DQN learner every Q-learning algorithm reuses.
+
+A learner is a handful of pure, per-trial functions (the trainer vmaps them over trials):
+
+``init(key, transition) -> state``           parameters, optimizer, replay (rows shaped like
+                                             the example transition the trainer passes)
+``init_carry() -> carry``                    per-episode actor state (e.g. DOC's current options)
+``act(state, obs, carry, noise, step)``      -> (action, carry): exploring action for one env step
+``observe(state, transition) -> state``      store what the update needs
+``update(state, noise) -> state``            one learning step (every ``train_every`` env steps)
+``policy(state) -> params``                  what a greedy test evaluates (snapshotted)
+``greedy_act(params, obs, carry)``           -> (action, carry): the test policy
+``action_shape``                             shape of the int32 action ``env.step`` takes
+``act_noise`` / ``update_noise``             {name: shape} of the uniforms ``act``/``update`` consume;
+                                             the trainer draws a whole chunk's worth at once.
+
+A research fork adds a learner by writing one file in ``jaxusar/algos/`` that builds one of these.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import jax
+import jax.numpy as jnp
+
+from jaxusar.config import DQNConfig
+from jaxusar.core.qlearning import DQN, epsilon_greedy, linear_epsilon
+
+
+class Learner(Protocol):
+    action_shape: tuple
+    act_noise: dict
+    update_noise: dict
+
+    def init(self, key, transition: dict): ...
+    def init_carry(self): ...
+    def act(self, state, obs, carry, noise, step): ...
+    def observe(self, state, transition: dict): ...
+    def update(self, state, noise): ...
+    def policy(self, state): ...
+    def greedy_act(self, params, obs, carry): ...
+
+
+def default_row(transition: dict) -> dict:
+    """obs, action, reward, next_obs and whether the next state is terminal (not a time-limit cut)."""
+    return {"obs": transition["obs"], "action": transition["action"], "reward": transition["reward"],
+            "next_obs": transition["next_obs"], "terminal": transition["info"]["terminated"]}
+
+
+class IndependentDQN:
+    """``n`` DQNs with their own parameters, optimizers and replay buffers, acting side by side.
+
+    Learner ``i`` sees the whole observation and picks ``action[i]``; nothing is shared (independent
+    Q-learning, Tan 1993). With ``n = 1`` it is a single-agent DQN (``action`` has shape [1]).
+
+    Args:
+      obs_dim, n_actions, n: sizes. cfg: DQNConfig.
+      target_fn(batch, q_t_target, q_t_online) -> float[B]: the learner's target rule (see qlearning).
+      row_fn(transition) -> dict: the replay row of learner-independent fields (defaults to
+        ``default_row``); the trainer's transition has obs, action, reward, next_obs, done, info.
+      valid_fn(obs) -> bool[n_actions]: actions allowed in ``obs`` (e.g. options whose initiation set
+        holds); None = all.
+    """
+
+    def __init__(self, obs_dim: int, n_actions: int, n: int, cfg: DQNConfig, target_fn: Callable,
+                 row_fn: Callable = default_row, valid_fn: Callable | None = None):
+        self.dqn = DQN(obs_dim, n_actions, cfg, target_fn)
+        self.cfg, self.n, self.n_actions, self.obs_dim = cfg, n, n_actions, obs_dim
+        self.row_fn, self.valid_fn = row_fn, valid_fn
+        self.action_shape = (n,)
+        self.act_noise = {"explore": (n,), "action": (n,)}
+        self.update_noise = {"sample": (n, cfg.batch_size)}
+
+    def _rows(self, transition: dict) -> dict:
+        """The shared row, broadcast to every learner, with each learner's own action."""
+        row = self.row_fn(transition)
+        rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.n, *jnp.shape(x))), row)
+        rows["action"] = transition["action"]
+        return rows
+
+    def init(self, key, transition: dict):
+        rows = self._rows(transition)
+        return jax.vmap(self.dqn.init)(jax.random.split(key, self.n), rows)
+
+    def init_carry(self):
+        return jnp.zeros((), jnp.int32)
+
+    def _q(self, params, obs):
+        return jax.vmap(self.dqn.q_values, in_axes=(0, None))(params, obs)  # [n, A]
+
+    def _valid(self, obs):
+        return None if self.valid_fn is None else self.valid_fn(obs)
+
+    def act(self, state, obs, carry, noise, step):
+        eps = linear_epsilon(self.cfg, step)
+        q, valid = self._q(state.params, obs), self._valid(obs)
+        pick = lambda q_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, valid)
+        return jax.vmap(pick)(q, noise["explore"], noise["action"]), carry
+
+    def observe(self, state, transition):
+        return jax.vmap(self.dqn.add)(state, self._rows(transition))
+
+    def update(self, state, noise):
+        return jax.vmap(self.dqn.update)(state, noise["sample"])
+
+    def policy(self, state):
+        return state.params
+
+    def greedy_act(self, params, obs, carry):
+        q, valid = self._q(params, obs), self._valid(obs)
+        if valid is not None:
+            q = jnp.where(valid, q, -jnp.inf)
+        return jnp.argmax(q, axis=-1).astype(jnp.int32), carry

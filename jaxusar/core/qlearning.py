@@ -1,0 +1,168 @@
+"""The one Q-learning update every learner in jaxusar uses (IQL, sub-policies, coordinator, DOC critic).
+
+Target rules are small pure functions of named tensors (rlax style: ``_tm1`` is the step the action
+was taken in, ``_t`` the step after). A learner picks its rule by passing a ``target_fn`` to
+``DQN``; the replay, the loss, the optimizer and the target network are shared.
+
+Sources: Mnih et al. 2015 (DQN, target network); van Hasselt et al. 2016 (Double DQN);
+Sutton, Precup and Singh 1999, eq. 8 (SMDP Q-learning over options: discount gamma^k).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import chex
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from jaxusar.config import DQNConfig
+from jaxusar.core import replay as rb
+
+NEG_INF = -1e9
+
+
+# -- target rules ---------------------------------------------------------------------------------
+def q_learning_target(r_t: jax.Array, discount_t: jax.Array, q_t: jax.Array,
+                      valid_t: jax.Array | None = None) -> jax.Array:
+    """One-step Q-learning target r_t + discount_t * max_a q_t[a] (max over valid actions).
+
+    r_t float[B]; discount_t float[B] (gamma, or 0 at a terminal step); q_t float[B, A] from the target
+    network; valid_t optional bool[B, A].
+    """
+    chex.assert_rank([r_t, discount_t, q_t], [1, 1, 2])
+    if valid_t is not None:
+        q_t = jnp.where(valid_t, q_t, NEG_INF)
+    return r_t + discount_t * jnp.max(q_t, axis=-1)
+
+
+def double_q_learning_target(r_t, discount_t, q_t_value, q_t_selector, valid_t=None) -> jax.Array:
+    """Double DQN: the online net selects argmax_a q_t_selector[a], the target net values it."""
+    chex.assert_rank([r_t, discount_t, q_t_value, q_t_selector], [1, 1, 2, 2])
+    if valid_t is not None:
+        q_t_selector = jnp.where(valid_t, q_t_selector, NEG_INF)
+    a_t = jnp.argmax(q_t_selector, axis=-1)
+    return r_t + discount_t * jnp.take_along_axis(q_t_value, a_t[:, None], axis=-1)[:, 0]
+
+
+def smdp_q_learning_target(r_sum_t, k_t, terminal_t, gamma: float, q_t, valid_t) -> jax.Array:
+    """SMDP target over options (Sutton et al. 1999, eq. 8; paper Sec. IV-C).
+
+    r_sum_t float[B]: reward accumulated over the option's k_t steps, already discounted inside the
+    option (sum_i gamma^i r_{t+i}); k_t int[B] >= 1 its duration; terminal_t bool[B]; q_t float[B, A];
+    valid_t bool[B, A] the options whose initiation sets hold at the next decision.
+    """
+    discount_t = jnp.where(terminal_t, 0.0, gamma ** k_t.astype(jnp.float32))
+    return q_learning_target(r_sum_t, discount_t, q_t, valid_t)
+
+
+# -- the shared DQN machinery -----------------------------------------------------------------------
+class MLP(nn.Module):
+    """A plain ReLU MLP mapping features float[..., D] to float[..., n_out]."""
+
+    hidden: Sequence[int]
+    n_out: int
+
+    @nn.compact
+    def __call__(self, x):
+        for width in self.hidden:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(self.n_out)(x)
+
+
+@struct.dataclass
+class DQNState:
+    params: object
+    target_params: object
+    opt_state: object
+    replay: rb.Replay
+    updates: jax.Array  # gradient updates done
+
+
+def linear_epsilon(cfg: DQNConfig, step: jax.Array) -> jax.Array:
+    """Linear decay from eps_start to eps_end over eps_decay_steps env steps, then flat."""
+    frac = jnp.clip(step / cfg.eps_decay_steps, 0.0, 1.0)
+    return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+
+
+def epsilon_greedy(q: jax.Array, eps: jax.Array, u_explore: jax.Array, u_action: jax.Array,
+                   valid: jax.Array | None = None) -> jax.Array:
+    """Greedy in q float[A] with probability 1 - eps, else uniform over the (valid) actions.
+
+    u_explore, u_action: scalar uniforms in [0, 1), drawn by the caller.
+    """
+    n = q.shape[-1]
+    if valid is None:
+        valid = jnp.ones((n,), bool)
+    greedy = jnp.argmax(jnp.where(valid, q, NEG_INF))
+    # the (floor(u * n_valid))-th valid action
+    rank = jnp.floor(u_action * valid.sum()).astype(jnp.int32)
+    random = jnp.argmax(jnp.cumsum(valid) > rank)
+    return jnp.where(u_explore < eps, random, greedy).astype(jnp.int32)
+
+
+TargetFn = Callable[[dict, jax.Array, jax.Array], jax.Array]
+
+
+class DQN:
+    """A Q-network with replay, target network and optimizer, as pure functions of a ``DQNState``.
+
+    ``target_fn(batch, q_t_target, q_t_online) -> target float[B]`` states the learner's target
+    rule; ``batch`` holds the replay rows (``obs``, ``action``, ``next_obs`` and whatever the learner
+    stored). Observations are stored as uint8 when ``binary_obs`` (the env's one-hot features):
+    4x smaller rows.
+    """
+
+    def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,
+                 binary_obs: bool = True):
+        self.cfg, self.obs_dim, self.n_actions = cfg, obs_dim, n_actions
+        self.target_fn = target_fn
+        self.obs_dtype = jnp.uint8 if binary_obs else jnp.float32
+        self.network = MLP(tuple(cfg.hidden), n_actions)
+        self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+
+    def q_values(self, params, obs: jax.Array) -> jax.Array:
+        return self.network.apply(params, obs.astype(jnp.float32))
+
+    def init(self, key: jax.Array, example_row: dict) -> DQNState:
+        params = self.network.init(key, jnp.zeros((self.obs_dim,), jnp.float32))
+        row = self.compact(example_row)
+        return DQNState(params=params, target_params=params, opt_state=self.optimizer.init(params),
+                        replay=rb.init(row, self.cfg.buffer_capacity), updates=jnp.zeros((), jnp.int32))
+
+    def compact(self, row: dict) -> dict:
+        row = dict(row)
+        for k in ("obs", "next_obs"):
+            row[k] = jnp.asarray(row[k]).astype(self.obs_dtype)
+        return row
+
+    def add(self, state: DQNState, row: dict) -> DQNState:
+        return state.replace(replay=rb.add(state.replay, self.compact(row)))
+
+    def loss(self, params, target_params, batch: dict):
+        q_tm1 = self.q_values(params, batch["obs"])
+        q_t_target = self.q_values(target_params, batch["next_obs"])
+        q_t_online = self.q_values(params, batch["next_obs"]) if self.cfg.double_dqn else q_t_target
+        target = jax.lax.stop_gradient(self.target_fn(batch, q_t_target, q_t_online))
+        q_a = jnp.take_along_axis(q_tm1, batch["action"][:, None].astype(jnp.int32), axis=-1)[:, 0]
+        td = q_a - target
+        per = optax.huber_loss(td) if self.cfg.loss == "huber" else 0.5 * td ** 2
+        return per.mean()
+
+    def update(self, state: DQNState, u_sample: jax.Array) -> DQNState:
+        """One gradient step on a batch drawn with the uniforms u_sample float[batch_size]."""
+        batch = rb.sample(state.replay, u_sample)
+        grads = jax.grad(self.loss)(state.params, state.target_params, batch)
+        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        n = state.updates + 1
+        cfg = self.cfg
+        if cfg.tau < 1.0:
+            target = optax.incremental_update(params, state.target_params, cfg.tau)
+        else:
+            copy = (n % cfg.target_update_every) == 0
+            target = jax.tree.map(lambda p, t: jnp.where(copy, p, t), params, state.target_params)
+        return state.replace(params=params, target_params=target, opt_state=opt_state, updates=n)

@@ -1,0 +1,318 @@
+"""The scan trainer: N trials of one learner on one env, as jitted chunks of a single ``lax.scan``.
+
+Shape of a chunk (one jitted call, all trials at once)::
+
+    scan over iterations:                      # one iteration = train_every env steps + one update
+        scan over train_every steps:
+            vmap over trials: act, env.step, observe, episode bookkeeping, auto-reset
+        if any trial finished a test-due episode: snapshot its policy params   (lax.cond)
+        if step >= learning_starts: vmap over trials: learner.update           (lax.cond)
+    vmap over trials x snapshots: greedy test episode; record tests, keep the best params
+
+The conditions of both ``lax.cond`` are scalars equal across trials, so vmap never turns them into
+selects that run both branches (DESIGN.md). Greedy tests are evaluated from parameter snapshots
+once per chunk in one batched call (a per-trial test inside the step would run on every step).
+All randomness of a chunk is drawn up front from ``fold_in(trial_key, chunk_index)``, so a trial's
+numbers do not depend on which other trials run beside it.
+
+Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
+stepping (a vmap cannot stop one lane) but records nothing more, so its results are exactly those of
+running it alone. Episode ``i``'s return and length, test ``j`` (after training episode
+``(j + 1) * test_every``), the best test's params (paper Sec. V: catastrophic forgetting) and
+``episodes_to_optimal`` (the training-episode count at the first optimal test) are kept per trial.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxusar.config import ConfigError, TrainConfig
+
+NO_TEST = -1
+NEVER = np.iinfo(np.int32).max
+
+
+@struct.dataclass
+class Snapshots:
+    params: object        # [S, ...] policy params
+    test_index: jax.Array  # int32[S], NO_TEST where unused
+    count: jax.Array       # slots used in this chunk
+
+
+@struct.dataclass
+class TrialState:
+    """Everything one trial carries between steps (the trainer adds a leading trials axis)."""
+
+    key: jax.Array
+    env_state: object
+    obs: jax.Array
+    actor: object
+    learner: object
+    episodes: jax.Array       # training episodes finished
+    ep_return: jax.Array
+    ep_length: jax.Array
+    env_steps: jax.Array      # env steps taken until `episodes` reached the budget
+    pending_test: jax.Array   # test index due at the end of this iteration, or NO_TEST
+    snaps: Snapshots
+    train_return: jax.Array   # float32[episodes + 1]; the last slot is a write-off
+    train_length: jax.Array   # int32[episodes + 1]
+    test_return: jax.Array    # float32[n_tests + 1]
+    test_length: jax.Array    # int32[n_tests + 1]
+    test_optimal: jax.Array   # bool[n_tests + 1]
+    best_params: object
+    best_return: jax.Array
+    best_length: jax.Array
+    best_test: jax.Array
+    first_optimal_test: jax.Array
+
+
+@struct.dataclass
+class TrainState:
+    trials: TrialState        # leading trials axis
+    step: jax.Array           # env steps per trial so far (equal across trials)
+    chunk: jax.Array          # chunks run so far
+
+
+def _steps_of(info) -> jax.Array:
+    """Primitive steps an env step took (an SMDP env reports ``steps``; a plain env takes 1)."""
+    return info.get("steps", jnp.ones((), jnp.int32)) if isinstance(info, dict) else jnp.ones((), jnp.int32)
+
+
+class Trainer:
+    """Trains ``learner`` on ``env`` for ``cfg.episodes`` episodes per trial.
+
+    Args:
+      env: reset(key) -> (obs, state); step(key, state, action) -> (obs, state, reward, done, info),
+        info["terminated"] true only when the task is solved (not at the time limit); ``horizon``.
+      learner: see ``jaxusar.core.learners``.
+      cfg: TrainConfig. learning_starts, train_every: from the learner's DQNConfig.
+      optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
+      min_episode_steps: fewest env steps any episode can take (sizes the per-chunk test snapshots);
+        defaults to min(optimal_steps, horizon).
+    """
+
+    def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
+                 optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None):
+        self.env, self.learner, self.cfg = env, learner, cfg
+        self.learning_starts, self.train_every = learning_starts, train_every
+        self.optimal_steps = int(optimal_steps)
+        self.test_horizon = int(test_horizon or env.horizon)
+        self.min_episode_steps = int(min_episode_steps or max(1, min(optimal_steps, env.horizon)))
+        if cfg.test_every * self.min_episode_steps < train_every:
+            raise ConfigError(
+                f"train.test_every={cfg.test_every} episodes can take as few as "
+                f"{cfg.test_every * self.min_episode_steps} env steps, fewer than dqn.train_every={train_every}: "
+                "two tests could fall between updates; raise test_every or lower train_every")
+        self.iters = max(1, cfg.chunk_steps // train_every)
+        self.chunk_steps = self.iters * train_every
+        self.n_tests = cfg.episodes // cfg.test_every
+        self.n_slots = min(self.iters, math.ceil(self.chunk_steps / (cfg.test_every * self.min_episode_steps)) + 1)
+        self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
+        self._init = jax.jit(jax.vmap(self._init_trial))
+
+    # -- state ----------------------------------------------------------------------------------
+    def init(self, keys: jax.Array) -> TrainState:
+        return TrainState(trials=self._init(keys),
+                          step=jnp.zeros((), jnp.int32), chunk=jnp.zeros((), jnp.int32))
+
+    def _init_trial(self, key) -> TrialState:
+        k_env, k_learner = jax.random.split(jax.random.fold_in(key, 0x5EED))
+        obs, env_state = self.env.reset(k_env)
+        actor = self.learner.init_carry()
+        action = jnp.zeros(self.learner.action_shape, jnp.int32)
+        transition = self._transition(obs, env_state, action, actor)
+        learner = self.learner.init(k_learner, transition)
+        params = self.learner.policy(learner)
+        n, t = self.cfg.episodes, self.n_tests
+        zeros_like_slots = jax.tree.map(lambda p: jnp.zeros((self.n_slots, *p.shape), p.dtype), params)
+        return TrialState(
+            key=key, env_state=env_state, obs=obs, actor=actor, learner=learner,
+            episodes=jnp.zeros((), jnp.int32), ep_return=jnp.zeros((), jnp.float32),
+            ep_length=jnp.zeros((), jnp.int32), env_steps=jnp.zeros((), jnp.int32),
+            pending_test=jnp.full((), NO_TEST, jnp.int32),
+            snaps=Snapshots(zeros_like_slots, jnp.full((self.n_slots,), NO_TEST, jnp.int32), jnp.zeros((), jnp.int32)),
+            train_return=jnp.zeros((n + 1,), jnp.float32), train_length=jnp.zeros((n + 1,), jnp.int32),
+            test_return=jnp.zeros((t + 1,), jnp.float32), test_length=jnp.zeros((t + 1,), jnp.int32),
+            test_optimal=jnp.zeros((t + 1,), bool),
+            best_params=params, best_return=jnp.full((), -jnp.inf, jnp.float32),
+            best_length=jnp.full((), NEVER, jnp.int32), best_test=jnp.full((), NO_TEST, jnp.int32),
+            first_optimal_test=jnp.full((), NEVER, jnp.int32),
+        )
+
+    def _transition(self, obs, env_state, action, actor):
+        next_obs, _, reward, done, info = self.env.step(None, env_state, action)
+        return {"obs": obs, "action": action, "reward": reward, "next_obs": next_obs, "done": done,
+                "info": info, "carry": actor, "next_carry": actor}
+
+    # -- one chunk ------------------------------------------------------------------------------
+    def _noise(self, trials: TrialState, chunk):
+        """This chunk's uniforms, shaped [iters, train_every, trials, ...] and [iters, trials, ...]."""
+
+        def per_trial(key):
+            key = jax.random.fold_in(key, chunk)
+            k_act, k_upd, k_reset = jax.random.split(key, 3)
+            act = {name: jax.random.uniform(jax.random.fold_in(k_act, i), (self.iters, self.train_every, *shape))
+                   for i, (name, shape) in enumerate(sorted(self.learner.act_noise.items()))}
+            act["reset_key"] = jax.random.split(k_reset, (self.iters, self.train_every))
+            upd = {name: jax.random.uniform(jax.random.fold_in(k_upd, i), (self.iters, *shape))
+                   for i, (name, shape) in enumerate(sorted(self.learner.update_noise.items()))}
+            return act, upd
+
+        act, upd = jax.vmap(per_trial)(trials.key)
+        act = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), act)
+        upd = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 1), upd)
+        return act, upd
+
+    def _env_step(self, s: TrialState, noise, step) -> TrialState:
+        lrn, cfg = self.learner, self.cfg
+        action, actor = lrn.act(s.learner, s.obs, s.actor, noise, step)
+        next_obs, env_state, reward, done, info = self.env.step(None, s.env_state, action)
+        learner = lrn.observe(s.learner, {"obs": s.obs, "action": action, "reward": reward, "next_obs": next_obs,
+                                          "done": done, "info": info, "carry": s.actor, "next_carry": actor})
+        ep_return, ep_length = s.ep_return + reward, s.ep_length + _steps_of(info)
+        counted = done & (s.episodes < cfg.episodes)
+        slot = jnp.where(counted, s.episodes, cfg.episodes)
+        episodes = s.episodes + done
+        test_due = counted & (episodes % cfg.test_every == 0)
+        obs0, state0 = self.env.reset(noise["reset_key"])
+        pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)
+        return s.replace(
+            env_state=pick(state0, env_state), obs=pick(obs0, next_obs), actor=pick(lrn.init_carry(), actor),
+            learner=learner, episodes=episodes,
+            ep_return=jnp.where(done, 0.0, ep_return), ep_length=jnp.where(done, 0, ep_length),
+            env_steps=s.env_steps + (s.episodes < cfg.episodes),
+            pending_test=jnp.where(test_due, episodes // cfg.test_every - 1, s.pending_test),
+            train_return=s.train_return.at[slot].set(ep_return),
+            train_length=s.train_length.at[slot].set(ep_length),
+        )
+
+    def _snapshot(self, s: TrialState) -> TrialState:
+        due = s.pending_test != NO_TEST
+        slot = jnp.minimum(s.snaps.count, self.n_slots - 1)
+        params = jax.tree.map(lambda store, p: store.at[slot].set(jnp.where(due, p, store[slot])),
+                              s.snaps.params, self.learner.policy(s.learner))
+        index = s.snaps.test_index.at[slot].set(jnp.where(due, s.pending_test, s.snaps.test_index[slot]))
+        return s.replace(snaps=Snapshots(params, index, s.snaps.count + due),
+                         pending_test=jnp.full((), NO_TEST, jnp.int32))
+
+    def greedy_episode(self, params, key):
+        """One greedy test episode: (return, primitive steps, terminated, final env state)."""
+        obs, env_state = self.env.reset(key)
+        carry0 = (obs, env_state, self.learner.init_carry(), jnp.zeros((), jnp.float32),
+                  jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
+
+        def body(c, _):
+            obs, es, actor, ret, length, done, terminated = c
+            action, actor2 = self.learner.greedy_act(params, obs, actor)
+            obs2, es2, r, d, info = self.env.step(None, es, action)
+            live = ~done
+            keep = lambda new, old: jax.tree.map(lambda x, y: jnp.where(live, x, y), new, old)
+            return (keep(obs2, obs), keep(es2, es), keep(actor2, actor), ret + jnp.where(live, r, 0.0),
+                    length + jnp.where(live, _steps_of(info), 0), done | d,
+                    terminated | (live & info["terminated"])), None
+
+        (_, es, _, ret, length, _, terminated), _ = jax.lax.scan(body, carry0, None, length=self.test_horizon)
+        return ret, length, terminated, es
+
+    def _evaluate(self, s: TrialState) -> TrialState:
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), i))(s.snaps.test_index)
+        ret, length, terminated, _ = jax.vmap(self.greedy_episode)(s.snaps.params, keys)
+        used = s.snaps.test_index != NO_TEST
+        optimal = used & terminated & (length <= self.optimal_steps + self.cfg.optimal_slack)
+        idx = jnp.where(used, s.snaps.test_index, self.n_tests)
+        # best = highest return, then fewest steps, then earliest test
+        score_ret = jnp.where(used, ret, -jnp.inf)
+        order = jnp.lexsort((s.snaps.test_index, length, -score_ret))
+        b = order[0]
+        better = used[b] & ((ret[b] > s.best_return) | ((ret[b] == s.best_return) & (length[b] < s.best_length)))
+        best_params = jax.tree.map(lambda new, old: jnp.where(better, new[b], old), s.snaps.params, s.best_params)
+        return s.replace(
+            test_return=s.test_return.at[idx].set(ret), test_length=s.test_length.at[idx].set(length),
+            test_optimal=s.test_optimal.at[idx].set(optimal),
+            best_params=best_params,
+            best_return=jnp.where(better, ret[b], s.best_return),
+            best_length=jnp.where(better, length[b], s.best_length),
+            best_test=jnp.where(better, s.snaps.test_index[b], s.best_test),
+            first_optimal_test=jnp.minimum(s.first_optimal_test, jnp.min(jnp.where(optimal, idx, NEVER))),
+            snaps=Snapshots(s.snaps.params, jnp.full_like(s.snaps.test_index, NO_TEST), jnp.zeros((), jnp.int32)),
+        )
+
+    def _run_chunk(self, state: TrainState) -> TrainState:
+        act_noise, upd_noise = self._noise(state.trials, state.chunk)
+        vstep = jax.vmap(self._env_step, in_axes=(0, 0, None))
+
+        def iteration(carry, noise):
+            trials, step = carry
+            act, upd = noise
+
+            def inner(c, n):
+                t, k = c
+                return (vstep(t, n, k), k + 1), None
+
+            (trials, step), _ = jax.lax.scan(inner, (trials, step), act)
+            trials = jax.lax.cond(jnp.any(trials.pending_test != NO_TEST),
+                                  jax.vmap(self._snapshot), lambda t: t, trials)
+            learner = jax.lax.cond(step >= self.learning_starts, jax.vmap(self.learner.update),
+                                   lambda l, _: l, trials.learner, upd)
+            return (trials.replace(learner=learner), step), None
+
+        (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
+        trials = jax.vmap(self._evaluate)(trials)
+        return TrainState(trials=trials, step=step, chunk=state.chunk + 1)
+
+    # -- host loop ------------------------------------------------------------------------------
+    def max_chunks(self) -> int:
+        max_steps = self.cfg.episodes * self.env.horizon
+        return math.ceil(max_steps / self.chunk_steps) + 1
+
+    def done(self, state: TrainState) -> bool:
+        return bool(np.min(np.asarray(state.trials.episodes)) >= self.cfg.episodes)
+
+    def run_chunk(self, state: TrainState) -> TrainState:
+        state = self._chunk(state)
+        overflow = np.asarray(state.trials.snaps.count).max()  # reset by _evaluate; stays 0 unless misuse
+        assert overflow == 0
+        return state
+
+    def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
+              on_chunk: Callable | None = None) -> TrainState:
+        """Run chunks until every trial has ``episodes`` episodes. ``progress(info)`` after each chunk."""
+        state = self.init(keys) if state is None else state
+        start = time.perf_counter()
+        while not self.done(state):
+            if int(state.chunk) >= self.max_chunks():
+                raise RuntimeError("episode budget not reached within the step bound; this is a bug")
+            state = self.run_chunk(state)
+            if on_chunk is not None:
+                on_chunk(state)
+            if progress is not None:
+                eps = np.minimum(np.asarray(state.trials.episodes), self.cfg.episodes)
+                elapsed = time.perf_counter() - start
+                frac = eps.min() / self.cfg.episodes
+                progress({"chunk": int(state.chunk), "episodes_min": int(eps.min()), "episodes_mean": float(eps.mean()),
+                          "episodes_total": self.cfg.episodes, "elapsed": elapsed,
+                          "eta": elapsed * (1 - frac) / max(frac, 1e-9), "step": int(state.step)})
+        return state
+
+    def results(self, state: TrainState) -> dict:
+        """Per-trial numpy results (leading trials axis) plus episodes_to_optimal as a list."""
+        t = jax.device_get(state.trials)
+        n, nt = self.cfg.episodes, self.n_tests
+        first = np.asarray(t.first_optimal_test)
+        eto = [None if f == NEVER else int((f + 1) * self.cfg.test_every) for f in first]
+        return {
+            "train_return": t.train_return[:, :n], "train_length": t.train_length[:, :n],
+            "test_return": t.test_return[:, :nt], "test_length": t.test_length[:, :nt],
+            "test_optimal": t.test_optimal[:, :nt],
+            "test_episode": (np.arange(nt) + 1) * self.cfg.test_every,
+            "best_return": t.best_return, "best_length": t.best_length, "best_test": t.best_test,
+            "best_params": t.best_params, "env_steps": t.env_steps,
+            "episodes_to_optimal": eto,
+        }

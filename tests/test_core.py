@@ -1,0 +1,237 @@
+"""The learning core: replay, target rules, epsilon, trainer (trials, determinism, tests, best params), IQL."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxusar import config, envs, planning
+from jaxusar.algos import iql
+from jaxusar.config import ConfigError, DQNConfig, TrainConfig
+from jaxusar.core import IndependentDQN, Trainer, qlearning as ql, replay as rb
+from jaxusar.envs import parse_layout
+
+TINY = """
+.V..
+.A..
+..AV
+....
+"""
+TINY_REGIONS = "H hall hall\n---\nHHHH\nHHHH\nHHHH\nHHHH\n"
+
+
+def tiny_env(**kw):
+    return envs.make(parse_layout(TINY, TINY_REGIONS, "tiny"), **{"horizon": 20, **kw})
+
+
+# -- replay -------------------------------------------------------------------------------------------
+def test_replay_wraparound_and_size():
+    buf = rb.init({"x": jnp.zeros((2,), jnp.int32)}, capacity=3)
+    for i in range(5):
+        buf = rb.add(buf, {"x": jnp.array([i, -i])})
+    assert int(buf.size) == 3 and int(buf.pos) == 2
+    # slots hold rows 3, 4, 2 (row 3 overwrote slot 0, row 4 slot 1)
+    np.testing.assert_array_equal(buf.rows["x"][:, 0], [3, 4, 2])
+
+
+def test_replay_samples_only_filled_slots_and_keeps_dtype():
+    buf = rb.init({"x": jnp.zeros((), jnp.uint8)}, capacity=100)
+    for i in range(1, 8):
+        buf = rb.add(buf, {"x": jnp.uint8(i)})
+    u = jax.random.uniform(jax.random.PRNGKey(0), (2000,))
+    got = np.asarray(rb.sample(buf, u)["x"])
+    assert got.dtype == np.uint8
+    assert set(got.tolist()) == set(range(1, 8))  # never an empty (zero) slot, every filled one reachable
+    assert not bool(rb.can_sample(buf, 8)) and bool(rb.can_sample(buf, 7))
+    assert int(np.asarray(rb.sample(buf, jnp.array([0.9999999]))["x"])[0]) == 7
+
+
+def test_replay_under_vmap():
+    bufs = jax.vmap(lambda _: rb.init({"x": jnp.zeros(())}, 4))(jnp.arange(3))
+    bufs = jax.vmap(rb.add)(bufs, {"x": jnp.array([1.0, 2.0, 3.0])})
+    np.testing.assert_array_equal(bufs.size, [1, 1, 1])
+    np.testing.assert_array_equal(jax.vmap(rb.sample)(bufs, jnp.full((3, 2), 0.5))["x"], [[1, 1], [2, 2], [3, 3]])
+
+
+def _decode_single(env, obs):
+    """Inverse of env.observe for a one-agent env: (pos, dir, triaged)."""
+    h, w = env.height, env.width
+    obs = np.asarray(obs)
+    return (np.array([[obs[:h].argmax(), obs[h:h + w].argmax()]]), np.array([obs[h + w:h + w + 4].argmax()]),
+            obs[h + w + 4:].astype(bool))
+
+
+def test_sampled_next_obs_is_the_step_after_obs():
+    """Rows from a real training run: re-stepping the env from obs with the stored action gives next_obs."""
+    env = envs.make(envs.load_layout("two_rooms").subset(agents=[1]), horizon=30)
+    cfg = config.load(sets=["train.episodes=40", "train.test_every=20", "train.chunk_steps=400",
+                            "dqn.learning_starts=100", "dqn.buffer_capacity=300"])
+    learner = iql.make_learner(env, cfg.dqn)
+    trainer = Trainer(env, learner, cfg.train, learning_starts=100, train_every=4, optimal_steps=17)
+    state = trainer.train(jax.random.split(jax.random.PRNGKey(3), 1))
+    buf = jax.tree.map(lambda x: x[0, 0], state.trials.learner.replay)  # trial 0, learner 0
+    batch = rb.sample(buf, jax.random.uniform(jax.random.PRNGKey(1), (64,)))
+    step = jax.jit(env.step)
+    for i in range(64):
+        pos, d, tri = _decode_single(env, batch["obs"][i])
+        s = envs.EnvState(jnp.asarray(pos, jnp.int32), jnp.asarray(d, jnp.int32), jnp.asarray(tri), jnp.int32(0))
+        nxt, _, r, _, info = step(None, s, jnp.asarray([batch["action"][i]]))
+        np.testing.assert_array_equal(np.asarray(nxt, np.uint8), batch["next_obs"][i])
+        assert float(r) == float(batch["reward"][i])
+        assert bool(info["terminated"]) == bool(batch["terminal"][i])
+
+
+# -- target rules --------------------------------------------------------------------------------------
+def test_q_learning_target_hand_computed():
+    r = jnp.array([1.0, 0.0, 5.0])
+    disc = jnp.array([0.9, 0.5, 0.0])
+    q = jnp.array([[1.0, 3.0], [-2.0, -1.0], [100.0, 0.0]])
+    np.testing.assert_allclose(ql.q_learning_target(r, disc, q), [1 + 0.9 * 3, -0.5, 5.0])
+    valid = jnp.array([[True, False], [True, True], [True, True]])
+    np.testing.assert_allclose(ql.q_learning_target(r, disc, q, valid), [1 + 0.9 * 1, -0.5, 5.0])
+
+
+def test_double_q_target_uses_online_argmax_and_target_value():
+    r, disc = jnp.array([0.0]), jnp.array([1.0])
+    q_value = jnp.array([[10.0, 20.0, 30.0]])
+    q_select = jnp.array([[5.0, 0.0, 1.0]])
+    np.testing.assert_allclose(ql.double_q_learning_target(r, disc, q_value, q_select), [10.0])
+    mask = jnp.array([[False, True, True]])
+    np.testing.assert_allclose(ql.double_q_learning_target(r, disc, q_value, q_select, mask), [30.0])
+
+
+def test_smdp_target_hand_computed():
+    """k > 1 discounts by gamma^k; invalid options are excluded from the max; terminal does not bootstrap."""
+    g = 0.9
+    r_sum = jnp.array([2.0, 2.0, 7.0])
+    k = jnp.array([3, 1, 4])
+    terminal = jnp.array([False, False, True])
+    q = jnp.array([[1.0, 50.0, 4.0], [1.0, 50.0, 4.0], [9.0, 9.0, 9.0]])
+    valid = jnp.array([[True, False, True], [True, True, True], [True, True, True]])
+    want = [2.0 + g ** 3 * 4.0, 2.0 + g * 50.0, 7.0]
+    np.testing.assert_allclose(ql.smdp_q_learning_target(r_sum, k, terminal, g, q, valid), want, rtol=1e-6)
+
+
+def test_epsilon_schedule_and_greedy():
+    cfg = DQNConfig(eps_start=1.0, eps_end=0.1, eps_decay_steps=100)
+    np.testing.assert_allclose([ql.linear_epsilon(cfg, s) for s in (0, 50, 100, 1000)], [1.0, 0.55, 0.1, 0.1],
+                               rtol=1e-6)
+    q = jnp.array([0.0, 5.0, 1.0, 2.0])
+    assert int(ql.epsilon_greedy(q, 0.0, 0.5, 0.0)) == 1
+    valid = jnp.array([True, False, True, False])
+    # exploring picks uniformly among valid actions only
+    picks = [int(ql.epsilon_greedy(q, 1.0, 0.0, u, valid)) for u in np.linspace(0, 0.999, 50)]
+    assert set(picks) == {0, 2} and 20 <= picks.count(0) <= 30
+    assert int(ql.epsilon_greedy(q, 0.0, 0.9, 0.0, valid)) == 2  # greedy over valid only
+
+
+def test_hard_target_copy_period():
+    cfg = DQNConfig(hidden=(8,), batch_size=4, buffer_capacity=16, target_update_every=3)
+    dqn = ql.DQN(3, 2, cfg, lambda b, qt, qo: b["reward"])
+    row = {"obs": jnp.ones(3), "action": jnp.int32(0), "reward": jnp.float32(1.0), "next_obs": jnp.ones(3)}
+    st = dqn.init(jax.random.PRNGKey(0), row)
+    for _ in range(4):
+        st = dqn.add(st, row)
+    same = lambda a, b: all(np.allclose(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+    u = jnp.full((4,), 0.3)
+    st = dqn.update(st, u)
+    assert not same(st.params, st.target_params)
+    st = dqn.update(dqn.update(st, u), u)  # third update copies
+    assert int(st.updates) == 3 and same(st.params, st.target_params)
+
+
+# -- trainer -------------------------------------------------------------------------------------------
+def _tiny_trainer(episodes=60, **sets):
+    cfg = config.load(sets=[f"train.episodes={episodes}", "train.test_every=10", "train.chunk_steps=400",
+                            "dqn.learning_starts=100", "dqn.eps_decay_steps=1500", "dqn.hidden=[32]",
+                            "dqn.target_update_every=50"] + [f"{k}={v}" for k, v in sets.items()])
+    env = tiny_env()
+    opt = planning.optimal_team_steps(env)
+    tr = Trainer(env, iql.make_learner(env, cfg.dqn), cfg.train, learning_starts=cfg.dqn.learning_starts,
+                 train_every=cfg.dqn.train_every, optimal_steps=opt)
+    return env, opt, tr
+
+
+def test_trial_equals_running_alone_and_is_deterministic():
+    _, _, tr = _tiny_trainer(episodes=40)
+    keys = jax.random.split(jax.random.PRNGKey(7), 3)
+    together = tr.results(tr.train(keys))
+    alone = tr.results(tr.train(keys[1:2]))
+    again = tr.results(tr.train(keys))
+    for name in ("train_return", "train_length", "test_return", "test_length"):
+        np.testing.assert_array_equal(together[name][1], alone[name][0], err_msg=name)
+        np.testing.assert_array_equal(together[name], again[name], err_msg=name)
+    assert together["episodes_to_optimal"] == again["episodes_to_optimal"]
+    # different keys give different trials
+    assert not np.array_equal(together["train_length"][0], together["train_length"][2])
+
+
+def test_iql_learns_tiny_map_and_best_params_replay():
+    # gamma 0.9: with no step penalty, a strong time preference is what makes the shortest plan best
+    env, opt, tr = _tiny_trainer(episodes=300, **{"dqn.gamma": 0.9, "dqn.lr": 0.001, "dqn.train_every": 1})
+    assert opt == 2  # agent 0 triages ahead at once; agent 1 turns right, then triages
+    res = tr.results(tr.train(jax.random.split(jax.random.PRNGKey(0), 2)))
+    assert all(e is not None and e <= 300 for e in res["episodes_to_optimal"]), res["episodes_to_optimal"]
+    for k in range(2):
+        # the kept best params reproduce the best test, which is the best of all recorded tests
+        params = jax.tree.map(lambda x: x[k], res["best_params"])
+        ret, length, terminated, _ = tr.greedy_episode(params, jax.random.PRNGKey(0))
+        assert float(ret) == res["best_return"][k] == res["test_return"][k].max() == 200.0
+        assert int(length) == res["best_length"][k] == opt and bool(terminated)
+        first = res["episodes_to_optimal"][k] // 10 - 1
+        assert res["test_optimal"][k][first] and not res["test_optimal"][k][:first].any()
+    assert res["train_length"].shape == (2, 300) and res["test_return"].shape == (2, 30)
+
+
+def test_trainer_rejects_tests_closer_than_updates():
+    env = tiny_env()
+    cfg = TrainConfig(episodes=10, test_every=1, chunk_steps=100)
+    with pytest.raises(ConfigError, match="test_every"):
+        Trainer(env, iql.make_learner(env, DQNConfig()), cfg, learning_starts=0, train_every=8, optimal_steps=2)
+
+
+def test_iql_learners_share_nothing():
+    env = tiny_env()
+    learner = iql.make_learner(env, DQNConfig(hidden=(8,), buffer_capacity=64))
+    assert isinstance(learner, IndependentDQN) and learner.n == env.n_agents
+    obs, s = env.reset(None)
+    tr = {"obs": obs, "action": jnp.array([0, 3]), "reward": jnp.float32(0), "next_obs": obs,
+          "done": jnp.bool_(False), "info": {"terminated": jnp.bool_(False)}}
+    st = learner.init(jax.random.PRNGKey(0), tr)
+    leaves = jax.tree.leaves(st.params)
+    assert all(x.shape[0] == 2 for x in leaves)
+    assert not np.allclose(leaves[-1][0], leaves[-1][1])  # separately initialised networks
+    st = learner.observe(st, tr)
+    np.testing.assert_array_equal(st.replay.rows["action"][:, 0], [0, 3])  # each stores its own action
+
+
+# -- config --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sets, match", [
+    (["dqn.gamma=0"], "dqn.gamma"), (["dqn.gamma=1.5"], "dqn.gamma"),
+    (["dqn.buffer_capacity=16", "dqn.batch_size=32"], "buffer_capacity"),
+    (["train.episodes=-3"], "train.episodes"), (["dqn.bogus=1"], "dqn.bogus"),
+    (["train.episodes=ten"], "train.episodes"), (["dqn.hidden=64"], "dqn.hidden"),
+    (["dqn.double_dqn=1"], "double_dqn"), (["nokey"], "key=value"), (["dqn.loss=l1"], "dqn.loss"),
+])
+def test_config_errors_name_the_key(sets, match):
+    with pytest.raises(ConfigError, match=match):
+        config.load(sets=sets)
+
+
+def test_config_file_errors(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train:\n  episodes: 10\n  speed: 3\n")
+    with pytest.raises(ConfigError, match="train.speed"):
+        config.load(bad)
+    with pytest.raises(ConfigError, match="does not exist"):
+        config.load(tmp_path / "missing.yaml")
+    bad.write_text("train: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        config.load(bad)
+
+
+def test_shipped_configs_load():
+    from pathlib import Path
+
+    for path in sorted(Path(config.CONFIG_DIR).glob("*.yaml")):
+        assert config.load(path).algo
