@@ -113,8 +113,64 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- train --------------------------------------------------------------------------------------
+def add_train(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", help="train one algorithm's trials in one vmapped call and write its results folder",
+        description="Train N trials of ALGO at once (one jit(vmap) call per chunk) and write DIR/metrics.json, "
+                    "DIR/curves.csv, DIR/curves.png and DIR/params/. Settings: the algorithm's defaults, "
+                    "then --config FILE, then --set overrides.")
+    p.add_argument("algo", help="algorithm: a module in jaxusar/algos (e.g. iql)")
+    p.add_argument("--trials", type=int, default=8, help="independent seeds, run side by side (default 8)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default runs/ALGO)")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help="YAML config (see configs/)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one setting, e.g. --set train.episodes=500 (repeatable)")
+    p.add_argument("--options", default=None, metavar="K[,K...]",
+                   help="doc (option-critic) only: numbers of options per agent, one run each (paper: 2,4,8)")
+    p.add_argument("--force", action="store_true", help="overwrite a finished run in DIR")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(run=train)
+
+
+def parse_options(text: str | None) -> tuple[int, ...] | None:
+    if text is None:
+        return None
+    try:
+        ks = tuple(int(k) for k in text.split(","))
+    except ValueError:
+        raise UsageError(f"--options {text!r}: expected comma-separated integers, e.g. 2,4,8") from None
+    if not ks or any(k < 1 for k in ks):
+        raise UsageError(f"--options {text!r}: every number of options must be >= 1")
+    return ks
+
+
+def train(args: argparse.Namespace) -> int:
+    from jaxusar import config
+    from jaxusar.envs import LayoutError
+    from jaxusar.experiments import train as experiment
+
+    try:
+        module = experiment.algorithm_module(args.algo)
+        if args.trials < 1:
+            raise config.ConfigError(f"--trials must be >= 1, got {args.trials}")
+        cfg = config.load(args.config, args.sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
+        if cfg.algo != args.algo:
+            raise config.ConfigError(f"the config is for algo {cfg.algo!r} but the command trains {args.algo!r}")
+        out = args.out or Path("runs") / args.algo
+        experiment.prepare_out(out, args.force)
+        options = parse_options(args.options)
+        if options is not None and args.algo != "doc":
+            raise UsageError("--options applies to doc (option-critic) only")
+        extra = {} if options is None else {"options": options}
+        experiment.run(cfg, args.trials, out, force=True, quiet=args.quiet, **extra)
+    except (config.ConfigError, LayoutError, FileExistsError) as err:
+        raise UsageError(str(err)) from None
+    return 0
+
+
 # -- entry point ----------------------------------------------------------------------------------
-COMMANDS = (add_demo,)
+COMMANDS = (add_demo, add_train)
 
 
 def build_parser() -> argparse.ArgumentParser:

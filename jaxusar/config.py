@@ -59,13 +59,13 @@ class EnvConfig:
 
 @dataclasses.dataclass(frozen=True)
 class DQNConfig:
-    hidden: tuple[int, ...] = _field((64, 64), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
+    hidden: tuple[int, ...] = _field((32, 32), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
     lr: float = _field(5e-4, _positive, "Adam learning rate")
     gamma: float = _field(0.99, lambda g: 0 < g <= 1, "discount, in (0, 1]")
     batch_size: int = _field(32, _positive)
     buffer_capacity: int = _field(50_000, _positive, "replay rows per learner")
     learning_starts: int = _field(1_000, _non_negative, "env steps before the first update")
-    train_every: int = _field(4, _positive, "env steps per gradient update")
+    train_every: int = _field(8, _positive, "env steps per gradient update")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")
     tau: float = _field(1.0, lambda t: 0 < t <= 1, "1 = hard copy every target_update_every; < 1 = Polyak each update")
     double_dqn: bool = _field(False)
@@ -188,9 +188,6 @@ def _merge(base: dict, extra: dict) -> dict:
     for k, v in extra.items():
         out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
-
-
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
 
 def load(path: str | Path | None = None, sets: list[str] | None = None, defaults: dict | None = None,

@@ -230,8 +230,15 @@ def test_config_file_errors(tmp_path):
         config.load(bad)
 
 
-def test_shipped_configs_load():
+def test_shipped_configs_equal_the_algorithm_defaults():
+    """configs/<algo>.yaml spell out exactly what `jaxusar train <algo>` runs without --config."""
     from pathlib import Path
 
-    for path in sorted(Path(config.CONFIG_DIR).glob("*.yaml")):
-        assert config.load(path).algo
+    from jaxusar.experiments.train import algorithm_module
+
+    paths = sorted((Path(__file__).parents[1] / "configs").glob("*.yaml"))
+    assert paths
+    for path in paths:
+        cfg = config.load(path)
+        module = algorithm_module(cfg.algo)
+        assert cfg == config.load(defaults={"algo": cfg.algo, **getattr(module, "DEFAULTS", {})}), path.name

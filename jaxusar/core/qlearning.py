@@ -142,20 +142,24 @@ class DQN:
     def add(self, state: DQNState, row: dict) -> DQNState:
         return state.replace(replay=rb.add(state.replay, self.compact(row)))
 
-    def loss(self, params, target_params, batch: dict):
+    def loss(self, params, target_params, batch: dict, target_fn: TargetFn):
         q_tm1 = self.q_values(params, batch["obs"])
         q_t_target = self.q_values(target_params, batch["next_obs"])
         q_t_online = self.q_values(params, batch["next_obs"]) if self.cfg.double_dqn else q_t_target
-        target = jax.lax.stop_gradient(self.target_fn(batch, q_t_target, q_t_online))
+        target = jax.lax.stop_gradient(target_fn(batch, q_t_target, q_t_online))
         q_a = jnp.take_along_axis(q_tm1, batch["action"][:, None].astype(jnp.int32), axis=-1)[:, 0]
         td = q_a - target
         per = optax.huber_loss(td) if self.cfg.loss == "huber" else 0.5 * td ** 2
         return per.mean()
 
-    def update(self, state: DQNState, u_sample: jax.Array) -> DQNState:
-        """One gradient step on a batch drawn with the uniforms u_sample float[batch_size]."""
+    def update(self, state: DQNState, u_sample: jax.Array, target_fn: TargetFn | None = None) -> DQNState:
+        """One gradient step on a batch drawn with the uniforms u_sample float[batch_size].
+
+        ``target_fn`` overrides the learner's rule for this call: a learner whose target depends on
+        other parameters (option-critic's U uses the terminations) passes a closure over them.
+        """
         batch = rb.sample(state.replay, u_sample)
-        grads = jax.grad(self.loss)(state.params, state.target_params, batch)
+        grads = jax.grad(self.loss)(state.params, state.target_params, batch, target_fn or self.target_fn)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         n = state.updates + 1

@@ -31,16 +31,19 @@ from jaxusar.core import Trainer
 from jaxusar.experiments.plots import training_figure
 
 
+ALIASES = {"doc": "option_critic"}  # command-line name -> module in jaxusar/algos
+
+
 def algorithm_module(name: str):
     """``jaxusar.algos.<name>``: adding a learner = adding one file there."""
     try:
-        return importlib.import_module(f"jaxusar.algos.{name}")
+        return importlib.import_module(f"jaxusar.algos.{ALIASES.get(name, name)}")
     except ModuleNotFoundError:
         import pkgutil
 
         import jaxusar.algos as algos
 
-        known = sorted(m.name for m in pkgutil.iter_modules(algos.__path__))
+        known = sorted({m.name for m in pkgutil.iter_modules(algos.__path__)} | set(ALIASES))
         raise ConfigError(f"unknown algorithm {name!r}; available: {', '.join(known)}") from None
 
 
@@ -116,7 +119,21 @@ def prepare_out(out: str | Path, force: bool) -> Path:
     return out
 
 
-def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False) -> dict:
+def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
+        **extra) -> dict:
+    """Train ``trials`` seeds of ``cfg.algo`` and write the results folder.
+
+    Algorithms whose experiment is more than one Trainer (the hierarchical method, option-critic's
+    several K) have a runner in ``jaxusar/experiments/<algo>.py`` with this same signature.
+    """
+    try:
+        runner = importlib.import_module(f"jaxusar.experiments.{cfg.algo}")
+    except ModuleNotFoundError:
+        return run_flat(cfg, trials, out, force=force, quiet=quiet)
+    return runner.run(cfg, trials, out, force=force, quiet=quiet, **extra)
+
+
+def run_flat(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False) -> dict:
     """Train ``trials`` seeds of a flat algorithm in one vmapped call and write the results folder."""
     if trials < 1:
         raise ConfigError(f"--trials must be >= 1, got {trials}")

@@ -1,0 +1,147 @@
+"""Trainer throughput vs the bare-update ceiling, side by side in one run (issue: learning core).
+
+For a config (default: the IQL defaults), measures
+  * trainer: env steps/s of the full N-trial trainer (act, env step, replay, updates, greedy tests),
+    median over timed chunks after a compile chunk;
+  * ceiling: the same number of gradient updates alone (same network, batch, trials x learners,
+    vmapped, replay sampling included), expressed in env steps/s (updates/s x train_every);
+  * ratio trainer / ceiling (aim: >= 0.5), and the flashbax item buffer's add+sample cost beside ours.
+
+    python benchmarks/train_throughput.py --trials 8 [--set dqn.hidden=[32,32] ...] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxusar import config
+from jaxusar.core import replay as rb
+from jaxusar.experiments.train import algorithm_module, build, environment_info
+
+
+def timed(fn, *args, repeats=3):
+    """(first call seconds incl. compile, median of `repeats` further calls)."""
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return first, statistics.median(times)
+
+
+def trainer_throughput(trainer, trials, chunks):
+    state = trainer.init(jax.random.split(jax.random.PRNGKey(0), trials))
+    t = time.perf_counter()
+    state = trainer.run_chunk(state)
+    jax.block_until_ready(state.step)
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(chunks):
+        t = time.perf_counter()
+        state = trainer.run_chunk(state)
+        jax.block_until_ready(state.step)
+        times.append(time.perf_counter() - t)
+    per_chunk = statistics.median(times)
+    return {"compile_and_first_chunk_s": first, "chunk_s": per_chunk,
+            "env_steps_per_s": trials * trainer.chunk_steps / per_chunk}, state
+
+
+def update_ceiling(trainer, state, trials, updates):
+    """`updates` vmapped learner updates in one scan, on the trainer's filled replay buffers."""
+    learner = trainer.learner
+    shapes = {k: v for k, v in learner.update_noise.items()}
+
+    def run(ls, key):
+        # randomness drawn up front, as the trainer does
+        noise = {n: jax.random.uniform(jax.random.fold_in(key, i), (updates, trials, *s))
+                 for i, (n, s) in enumerate(sorted(shapes.items()))}
+        ls, _ = jax.lax.scan(lambda ls, nz: (jax.vmap(learner.update)(ls, nz), None), ls, noise)
+        return ls
+
+    fn = jax.jit(run)
+    first, med = timed(fn, state.trials.learner, jax.random.PRNGKey(1))
+    return {"compile_s": first, "updates_per_s": trials * updates / med,
+            "env_steps_per_s": trials * updates * trainer.train_every / med}
+
+
+def replay_comparison(capacity=50_000, batch=32, obs_dim=60, n=2000):
+    """Our replay vs flashbax's item buffer: n add+sample rounds in one scan (if flashbax is installed)."""
+    row = {"obs": jnp.zeros((obs_dim,), jnp.uint8), "action": jnp.zeros((), jnp.int32),
+           "reward": jnp.zeros(()), "next_obs": jnp.zeros((obs_dim,), jnp.uint8), "terminal": jnp.zeros((), bool)}
+    out = {}
+
+    def ours(key):
+        buf = rb.init(row, capacity)
+
+        def body(buf, k):
+            buf = rb.add(buf, row)
+            return buf, rb.sample(buf, jax.random.uniform(k, (batch,)))["reward"].sum()
+
+        return jax.lax.scan(body, buf, jax.random.split(key, n))[1]
+
+    out["jaxusar_replay_us_per_add_sample"] = timed(jax.jit(ours), jax.random.PRNGKey(0))[1] / n * 1e6
+    try:
+        import flashbax as fbx
+    except ImportError:
+        out["flashbax"] = "not installed (pip install flashbax==0.1.3)"
+        return out
+    fb = fbx.make_item_buffer(max_length=capacity, min_length=1, sample_batch_size=batch, add_batches=False)
+
+    def theirs(key):
+        state = fb.init(row)
+
+        def body(state, k):
+            state = fb.add(state, row)
+            return state, fb.sample(state, k).experience["reward"].sum()
+
+        return jax.lax.scan(body, state, jax.random.split(key, n))[1]
+
+    out["flashbax_item_buffer_us_per_add_sample"] = timed(jax.jit(theirs), jax.random.PRNGKey(0))[1] / n * 1e6
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--algo", default="iql")
+    p.add_argument("--config", default=None)
+    p.add_argument("--set", dest="sets", action="append", default=[])
+    p.add_argument("--trials", type=int, default=8)
+    p.add_argument("--chunks", type=int, default=3, help="timed chunks after the compile chunk")
+    p.add_argument("--out", default="benchmarks/results/train_throughput.json")
+    args = p.parse_args(argv)
+    module = algorithm_module(args.algo)
+    cfg = config.load(args.config, args.sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
+    _, _, _, trainer = build(cfg)
+    tr, state = trainer_throughput(trainer, args.trials, args.chunks)
+    ceiling = update_ceiling(trainer, state, args.trials, updates=trainer.iters)
+    result = {"algo": args.algo, "trials": args.trials, "dqn": cfg.to_dict()["dqn"], "chunk_steps": trainer.chunk_steps,
+              "trainer": tr, "ceiling": ceiling, "ratio": tr["env_steps_per_s"] / ceiling["env_steps_per_s"],
+              "replay": replay_comparison(), "environment": environment_info()}
+    print(f"{args.algo}, {args.trials} trials, hidden {cfg.dqn.hidden}, batch {cfg.dqn.batch_size}, "
+          f"update every {cfg.dqn.train_every} env steps")
+    print(f"  trainer : {tr['env_steps_per_s']:>12,.0f} env steps/s  (chunk {tr['chunk_s']:.2f}s, "
+          f"compile+first chunk {tr['compile_and_first_chunk_s']:.1f}s)")
+    print(f"  ceiling : {ceiling['env_steps_per_s']:>12,.0f} env steps/s  ({ceiling['updates_per_s']:,.0f} updates/s, "
+          "bare vmapped updates)")
+    print(f"  ratio   : {result['ratio']:.2f}")
+    for k, v in result["replay"].items():
+        print(f"  {k}: {v if isinstance(v, str) else f'{v:.2f}'}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
