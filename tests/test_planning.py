@@ -1,0 +1,278 @@
+"""The BFS planner against a brute-force search over an independent pure-Python copy of the rules.
+
+``RefWorld`` re-implements the DESIGN.md step semantics with tuples and sets (it never calls the
+env), so comparing it with ``env.step`` on random transitions is an independent check of the env, and
+a plain dict/set BFS over it is an independent check of ``planning``.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxusar import envs, planning
+from jaxusar.envs import EnvState
+
+# (d_row, d_col) for EAST, SOUTH, WEST, NORTH, written out again rather than imported.
+STEP_DELTA = {0: (0, 1), 1: (1, 0), 2: (0, -1), 3: (-1, 0)}
+
+
+class RefWorld:
+    """The contract's rules on a map given as text; states are (positions, directions, triaged) tuples."""
+
+    def __init__(self, grid: str):
+        rows = grid.splitlines()
+        self.h, self.w = len(rows), len(rows[0])
+        cells = [(r, c, ch) for r, row in enumerate(rows) for c, ch in enumerate(row)]
+        self.blocked = {(r, c) for r, c, ch in cells if ch in "#X"}
+        self.victims = [(r, c) for r, c, ch in cells if ch == "V"]  # row-major, like the env
+        self.starts = [(r, c) for r, c, ch in cells if ch == "A"]
+
+    def step(self, pos, dirs, triaged, actions):
+        pos, dirs, triaged = list(pos), list(dirs), list(triaged)
+        newly = 0
+        for i, a in enumerate(actions):  # index order: later agents see earlier agents' moves
+            (r, c), (dr, dc) = pos[i], STEP_DELTA[dirs[i]]
+            front = (r + dr, c + dc)
+            if a == 0:
+                inside = 0 <= front[0] < self.h and 0 <= front[1] < self.w
+                if inside and front not in self.blocked and front not in self.victims and front not in pos:
+                    pos[i] = front
+            elif a == 1:
+                dirs[i] = (dirs[i] - 1) % 4
+            elif a == 2:
+                dirs[i] = (dirs[i] + 1) % 4
+            elif a == 3 and front in self.victims and not triaged[self.victims.index(front)]:
+                triaged[self.victims.index(front)] = True
+                newly += 1
+        return (tuple(pos), tuple(dirs), tuple(triaged)), newly
+
+    def shortest(self, starts, start_dir, goal) -> int:
+        """Plain BFS over joint states (a set of visited tuples); -1 if ``goal`` is never reached."""
+        start = (tuple(starts), (start_dir,) * len(starts), (False,) * len(self.victims))
+        joint = list(itertools.product(range(4), repeat=len(starts)))
+        seen, frontier, depth = {start}, [start], 0
+        while frontier:
+            if any(goal(s) for s in frontier):
+                return depth
+            nxt = []
+            for s in frontier:
+                for a in joint:
+                    s2, _ = self.step(*s, a)
+                    if s2 not in seen:
+                        seen.add(s2)
+                        nxt.append(s2)
+            frontier, depth = nxt, depth + 1
+        return -1
+
+    def team_optimum(self, start_dir) -> int:
+        return self.shortest(self.starts, start_dir, lambda s: all(s[2]))
+
+    def solo_to_triage(self, agent, victim, start_dir) -> int:
+        return self.shortest([self.starts[agent]], start_dir, lambda s: s[2][victim])
+
+    def solo_to_cells(self, agent, cells, start_dir) -> int:
+        return self.shortest([self.starts[agent]], start_dir, lambda s: s[0][0] in cells)
+
+
+def regions_for(grid: str) -> str:
+    rows = ["".join("#" if ch in "#X" else "R" for ch in row) for row in grid.splitlines()]
+    return "R all hall\n---\n" + "\n".join(rows)
+
+
+def small_env(grid: str, **overrides) -> envs.USAREnv:
+    return envs.make(envs.parse_layout(grid, regions_for(grid), "small"), **overrides)
+
+
+# name: (grid, start direction, what it exercises)
+SMALL_MAPS = {
+    "open_3x4": ("V..A\n.X..\nA..V", envs.NORTH),
+    # one door: the agent behind waits for the one ahead (7 joint steps, per-agent bound 6)
+    "door_north": ("V...V\n##.##\n##A##\n##A##", envs.NORTH),
+    # the same map upside down: now the agent behind has the lower index, so it is also blocked on
+    # the first step (agent 1 has not moved yet when agent 0 acts): 8 joint steps
+    "door_south": ("##A##\n##A##\n##.##\nV...V", envs.SOUTH),
+    "three_agents": ("A.V\n.A.\nV.A", envs.EAST),
+}
+EXPECTED_OPTIMUM = {"open_3x4": 4, "door_north": 7, "door_south": 8, "three_agents": 3}
+
+
+def decoupled_bound(dist: np.ndarray) -> int:
+    """min over victim -> agent maps of the max solo time: a lower bound on the team optimum."""
+    n_agents, n_victims = dist.shape
+    return min(max(dist[f[v], v] for v in range(n_victims))
+               for f in itertools.product(range(n_agents), repeat=n_victims))
+
+
+def best_assignment(dist: np.ndarray) -> int:
+    """min over one-victim-per-agent assignments of the max solo time (n_agents == n_victims)."""
+    return min(max(dist[a, v] for v, a in enumerate(p)) for p in itertools.permutations(range(len(dist))))
+
+
+# -- the reference rules against env.step -------------------------------------------------------
+CROSS_CHECK_MAPS = {
+    "two_rooms": envs.load_layout("two_rooms").to_ascii(),
+    "crowded": "AA.V\nA..A\nV.X.",
+    "door": SMALL_MAPS["door_north"][0],
+    "walls": "A#V.\n.X.A\nV..#",
+}
+
+
+@pytest.mark.parametrize("name", sorted(CROSS_CHECK_MAPS))
+def test_reference_rules_match_env_step_on_random_transitions(name):
+    grid = CROSS_CHECK_MAPS[name]
+    ref = RefWorld(grid)
+    env = envs.make("two_rooms") if name == "two_rooms" else small_env(grid)
+    rng = np.random.default_rng(sum(map(ord, name)))
+    n = 1500
+    free = [cell for cell in itertools.product(range(ref.h), range(ref.w))
+            if cell not in ref.blocked and cell not in ref.victims]
+    # Agents start clustered around a random cell (half the time next to a victim) so that they often
+    # block each other and face victims.
+    near_victim = [c for c in free if any(abs(c[0] - r) + abs(c[1] - q) == 1 for r, q in ref.victims)]
+    pos = []
+    for _ in range(n):
+        pool = near_victim if rng.random() < 0.5 else free
+        anchor = np.array(pool[rng.integers(len(pool))])
+        near = sorted(free, key=lambda c: np.abs(np.array(c) - anchor).sum() + rng.random())
+        pos.append(near[: env.n_agents])
+    pos = np.array(pos, np.int32)
+    dirs = rng.integers(0, 4, (n, env.n_agents)).astype(np.int32)
+    triaged = rng.random((n, env.n_victims)) < 0.3
+    actions = rng.choice(4, (n, env.n_agents), p=[0.55, 0.1, 0.1, 0.25]).astype(np.int32)
+    state = EnvState(jnp.asarray(pos), jnp.asarray(dirs), jnp.asarray(triaged), jnp.zeros(n, jnp.int32))
+    _, nxt, reward, _, info = jax.jit(jax.vmap(env.step, in_axes=(None, 0, 0)))(None, state, jnp.asarray(actions))
+    nxt_pos, nxt_dir, nxt_tri = map(np.asarray, (nxt.agent_pos, nxt.agent_dir, nxt.triaged))
+    blocked_moves = triages = 0
+    for k in range(n):
+        s = (tuple(map(tuple, pos[k].tolist())), tuple(dirs[k].tolist()), tuple(triaged[k].tolist()))
+        (rpos, rdir, rtri), newly = ref.step(*s, actions[k].tolist())
+        assert (list(map(list, rpos)), list(rdir), list(rtri)) == (
+            nxt_pos[k].tolist(), nxt_dir[k].tolist(), nxt_tri[k].tolist()), (s, actions[k])
+        assert float(reward[k]) == 100.0 * newly
+        blocked_moves += sum(a == 0 and p == q for a, p, q in zip(actions[k], s[0], rpos))
+        triages += newly
+    assert blocked_moves > 100 and triages > 20  # the sample really exercises blocking and triage
+
+
+# -- the planner against brute force -------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(SMALL_MAPS))
+def test_optimal_team_steps_matches_brute_force(name):
+    grid, start_dir = SMALL_MAPS[name]
+    optimum = RefWorld(grid).team_optimum(start_dir)
+    assert optimum == EXPECTED_OPTIMUM[name]
+    assert planning.optimal_team_steps(small_env(grid, start_dir=start_dir)) == optimum
+
+
+def test_agents_blocking_each_other_make_the_decoupled_bound_inexact():
+    for name, optimum in (("door_north", 7), ("door_south", 8)):
+        grid, start_dir = SMALL_MAPS[name]
+        ref = RefWorld(grid)
+        dist = np.array([[ref.solo_to_triage(a, v, start_dir) for v in range(2)] for a in range(2)])
+        # the front agent needs 5 steps for either victim, the one behind 6: with one victim each the
+        # bound is 6 (5 if the front agent could do both at once), but the door makes the back agent wait
+        np.testing.assert_array_equal(np.sort(dist.max(1)), [5, 6])
+        assert best_assignment(dist) == 6 and decoupled_bound(dist) == 5
+        assert ref.team_optimum(start_dir) == optimum > 6
+
+
+def test_agent_distances_match_brute_force():
+    # Two regions: the top row is a room, the rest a hall; agent 1 is walled off from victim 0.
+    grid = "V...V\n##.##\n##A##\n#A###"
+    regions = "T top room\nH hall hall\n---\nTTTTT\n##H##\n##H##\n#H###"
+    env = envs.make(envs.parse_layout(grid, regions, "split"))
+    ref = RefWorld(grid)
+    top = {(0, c) for c in range(5)}
+    hall = {(1, 2), (2, 2), (3, 1)}
+    for agent in range(2):
+        got = planning.agent_distances(env, agent)
+        want_region = [ref.solo_to_cells(agent, top, envs.NORTH), ref.solo_to_cells(agent, hall, envs.NORTH)]
+        want_triage = [ref.solo_to_triage(agent, v, envs.NORTH) for v in range(2)]
+        np.testing.assert_array_equal(got["to_region"], want_region)
+        np.testing.assert_array_equal(got["to_triage"], want_triage)
+    # agent 0: F F (top row) then turn and walk 1 cell and triage: 2 + 1 + 1 + 1 = 5 either way
+    np.testing.assert_array_equal(planning.agent_distances(env, 0)["to_triage"], [5, 5])
+    np.testing.assert_array_equal(planning.agent_distances(env, 1)["to_region"], [-1, 0])
+    np.testing.assert_array_equal(planning.agent_distances(env, 1)["to_triage"], [-1, -1])
+    with pytest.raises(ValueError, match="agent 2 out of range 0..1"):
+        planning.agent_distances(env, 2)
+
+
+def test_max_states_guard():
+    with pytest.raises(MemoryError, match="raise max_states"):
+        planning.optimal_team_steps(envs.make("two_rooms"), max_states=50)
+
+
+# -- two rooms ---------------------------------------------------------------------------------
+TOP, HALL, BOTTOM = 0, 1, 2
+
+
+@pytest.fixture(scope="module")
+def two_rooms_distances():
+    env = envs.make("two_rooms")
+    return [planning.agent_distances(env, a) for a in range(env.n_agents)]
+
+
+@pytest.fixture(scope="module")
+def two_rooms_optimum():
+    return planning.optimal_team_steps(envs.make("two_rooms"))
+
+
+def test_two_rooms_optimum_is_18(two_rooms_optimum):
+    assert two_rooms_optimum == 18
+
+
+def test_two_rooms_agent_distances(two_rooms_distances):
+    """Hand-counted (moves + turns (+ 1 TRIAGE)), both medics facing NORTH at the start.
+
+    Top medic, agent 0 at (0,14):
+      top room:    14 moves (3 down, 11 left) + 3 turns (west along row 0 to col 5 - (0,4) is a wall -,
+                   south to row 3, west into (3,3)); 2 turns cannot do it = 17.
+      bottom room: 10 moves ((0,14)->(0,11)->(6,11)->(6,12); row 5 is walled at cols 12-14) + 3 turns
+                   (west, south, east) = 13.
+      top victim:  19 moves to (1,0) (through (3,3)) + 4 turns (west, south, west, north) + triage = 24.
+      bottom victim: 12 moves to (7,13) + 4 turns (west, south, east, south) + triage = 17.
+    Bottom medic, agent 1 at (9,0):
+      top room:    9 moves (north to row 5, east to col 3, north into (3,3)) + 2 turns = 11.
+      bottom room: 14 moves (north to row 7, east to (7,12)) + 1 turn = 15.
+      top victim:  14 moves ((9,0)->(5,0)->(5,3)->(0,3)->(0,1)) + 3 turns (east, north, west) + triage = 18.
+      bottom victim: 15 moves ((9,0)->(7,0)->(7,13)) + 2 turns (east, south) + triage = 18.
+    Both start in the hall-way (0 steps).
+    """
+    top_medic, bottom_medic = two_rooms_distances
+    np.testing.assert_array_equal(top_medic["to_region"], [17, 0, 13])
+    np.testing.assert_array_equal(top_medic["to_triage"], [24, 17])
+    np.testing.assert_array_equal(bottom_medic["to_region"], [11, 0, 15])
+    np.testing.assert_array_equal(bottom_medic["to_triage"], [18, 18])
+
+
+def test_two_rooms_decoupled_bound_is_exact(two_rooms_distances, two_rooms_optimum):
+    dist = np.stack([d["to_triage"] for d in two_rooms_distances])
+    # Sec. IV-B: the top medic takes the bottom victim and the bottom medic the top one.
+    assert best_assignment(dist) == decoupled_bound(dist) == max(dist[0, 1], dist[1, 0]) == 18
+    assert two_rooms_optimum == best_assignment(dist)
+
+
+def test_two_rooms_hand_plan_finishes_in_18_steps():
+    """A concrete 18-step joint plan (the upper bound that matches the planner's optimum)."""
+    F, L, R, T = envs.FORWARD, envs.TURN_LEFT, envs.TURN_RIGHT, envs.TRIAGE
+    # top medic: west 3, south 6 to (6,11), east 2 to (6,13), south to (7,13), triage (8,13); then idle
+    top = [L, F, F, F, L] + [F] * 6 + [L, F, F, R, F, T] + [T]
+    # bottom medic: north 4 to (5,0), east 3 to (5,3), north 5 to (0,3), west 2 to (0,1), triage (0,0)
+    bottom = [F] * 4 + [R, F, F, F, L] + [F] * 5 + [L, F, F, T]
+    assert len(top) == len(bottom) == 18
+    env = envs.make("two_rooms")
+    step = jax.jit(env.step)
+    _, state = env.reset(None)
+    rewards = []
+    for t, actions in enumerate(zip(top, bottom), start=1):
+        _, state, reward, done, info = step(None, state, jnp.asarray(actions, jnp.int32))
+        rewards.append(float(reward))
+        assert bool(done) == (t == 18)
+    assert rewards[16] == 100.0 and rewards[17] == 100.0 and sum(rewards) == 200.0
+    np.testing.assert_array_equal(state.agent_pos, [[7, 13], [0, 1]])
+    assert bool(info["terminated"]) and int(state.t) == 18
