@@ -30,7 +30,10 @@ class ConfigError(ValueError):
 
 
 def _field(default, check=None, doc=""):
-    return dataclasses.field(default=default, metadata={"check": check, "doc": doc})
+    meta = {"check": check, "doc": doc}
+    if isinstance(default, dict):  # mutable: each config gets its own copy
+        return dataclasses.field(default_factory=lambda: dict(default), metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
 
 
 def _positive(x):
@@ -85,12 +88,69 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class DOCConfig:
+    """Simplified distributed option-critic (algos/option_critic.py); its critic uses the dqn section."""
+
+    options: tuple[int, ...] = _field((2, 4, 8), lambda ks: len(ks) > 0 and all(k >= 1 for k in ks),
+                                      "options per agent, one run each (paper Fig. 5: 2, 4, 8)")
+    actor_hidden: tuple[int, ...] = _field((32, 32), lambda h: len(h) > 0 and all(w > 0 for w in h),
+                                           "per-agent actor MLP widths (intra-option policies + terminations)")
+    actor_lr: float = _field(5e-4, _positive, "actor Adam learning rate")
+    entropy_weight: float = _field(0.01, _non_negative, "entropy bonus of the intra-option policies")
+    xi: float = _field(0.01, doc="termination regularizer added to the termination advantage (Bacon et al.)")
+    value_baseline: str = _field("max", lambda s: s in ("max", "mean"),
+                                 "V in the termination advantage: max or mean over the agent's options")
+    termination_at: str = _field("next", lambda s: s in ("next", "current"),
+                                 "termination gradient at s' (next; Bacon et al.) or at s (current)")
+    actor_data: str = _field("recent", lambda s: s in ("recent", "replay"),
+                             "actor batch: the train_every newest transitions (recent) or the critic's replay batch")
+    greedy_termination: float = _field(0.5, _unit_interval, "a greedy test ends an option where beta >= this")
+
+
+@dataclasses.dataclass(frozen=True)
+class CoordinatorConfig:
+    """The SMDP coordinator over joint options (paper Sec. IV-C)."""
+
+    episodes: int = _field(100, _positive, "coordinator training episodes per trial")
+    test_every: int = _field(1, _positive, "a greedy team test every this many coordinator episodes")
+    invalid_penalty: float = _field(-100.0, doc="reward for a joint option whose initiation set is not met")
+    option_timeout: int = _field(50, _positive, "an option running this many primitive steps terminates")
+    hidden: tuple[int, ...] = _field((32,), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
+    lr: float = _field(1e-3, _positive)
+    gamma: float = _field(0.99, lambda g: 0 < g <= 1, "discount per primitive step (gamma^k per option)")
+    batch_size: int = _field(16, _positive)
+    buffer_capacity: int = _field(2_000, _positive)
+    learning_starts: int = _field(16, _non_negative, "decisions before the first update")
+    target_update_every: int = _field(20, _positive)
+    eps_start: float = _field(1.0, _unit_interval)
+    eps_end: float = _field(0.0, _unit_interval)
+    eps_decay_steps: int = _field(60, _positive, "decisions of the linear epsilon decay")
+    chunk_steps: int = _field(64, _positive, "decisions per jitted chunk")
+
+
+@dataclasses.dataclass(frozen=True)
+class HierarchicalConfig:
+    """The paper's method: option sub-policies (DQN on pseudo-rewards) + the coordinator.
+
+    The sub-policies use the top-level ``dqn`` and ``train`` sections (train.test_every: paper 10).
+    """
+
+    task_gamma: dict[str, float] = _field(
+        {"TRIAGE-BOTTOM-VICTIM": 0.9}, lambda d: all(0 < g <= 1 for g in d.values()), "per-task discount overriding dqn.gamma (paper Fig. 4f)")
+    triage_start: str = _field("room", lambda s: s in ("room", "entry"),
+                               "triage tasks start anywhere in the room, or at its entry cells")
+    coordinator: CoordinatorConfig = dataclasses.field(default_factory=CoordinatorConfig)
+
+
+@dataclasses.dataclass(frozen=True)
 class ExperimentConfig:
     algo: str = _field("iql", doc="learner name")
     seed: int = _field(0, _non_negative)
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
     dqn: DQNConfig = dataclasses.field(default_factory=DQNConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    doc: DOCConfig = dataclasses.field(default_factory=DOCConfig)
+    hierarchical: HierarchicalConfig = dataclasses.field(default_factory=HierarchicalConfig)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -114,6 +174,11 @@ class ExperimentConfig:
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     origin = typing.get_origin(tp)
+    if origin is dict:
+        kt, vt = typing.get_args(tp)
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a mapping, got {value!r}")
+        return {_coerce(k, kt, f"{key} key"): _coerce(v, vt, f"{key}.{k}") for k, v in value.items()}
     if origin is tuple:
         (elem, _) = typing.get_args(tp)
         if not isinstance(value, (list, tuple)):

@@ -186,3 +186,46 @@ def agent_distances(env: USAREnv, agent: int, start_pos=None, start_dir=None) ->
     to_region = [steps(lambda p, d, t, r=r: region[p[:, 0, 0], p[:, 0, 1]] == r) for r in range(env.graph.n_regions)]
     to_triage = [steps(lambda p, d, t, v=v: t[:, v]) for v in range(env.n_victims)]
     return {"to_region": np.asarray(to_region), "to_triage": np.asarray(to_triage)}
+
+
+# -- single-agent distance tables (sub-policy optimum from any start) --------------------------------
+@jax.jit
+def _single_agent_successors(solid, victim_at):
+    """int32[H, W, 4, A, 3] next (row, col, dir) and bool[H, W, 4, A] 'triaged the victim' per action."""
+    from jaxusar.envs.usar import apply_actions
+
+    h, w = solid.shape
+    rows, cols, dirs, acts = jnp.meshgrid(jnp.arange(h), jnp.arange(w), jnp.arange(4), jnp.arange(N_ACTIONS),
+                                          indexing="ij")
+
+    def one(r, c, d, a):
+        pos, dr, _, newly = apply_actions(solid, victim_at, jnp.array([[r, c]]), jnp.array([d]),
+                                          jnp.zeros((1,), bool), jnp.array([a]))
+        return jnp.array([pos[0, 0], pos[0, 1], dr[0]]), newly[0]
+
+    return jax.vmap(jax.vmap(jax.vmap(jax.vmap(one))))(rows, cols, dirs, acts)
+
+
+def steps_to_goal(solid: np.ndarray, victim_at: np.ndarray, goal_region_mask: np.ndarray | None = None,
+                  triage: bool = False) -> np.ndarray:
+    """int32[H, W, 4]: fewest steps from every (row, col, dir) for one agent alone to reach its goal.
+
+    Goal: stand in a cell of ``goal_region_mask`` bool[H, W] (0 steps if already there), or, with
+    ``triage``, triage the victim marked in ``victim_at`` (its TRIAGE action counts). -1 = unreachable.
+    Exact (a fixed point of dist = min_a 1 + dist[next]); the successors are the env's own rules.
+    """
+    nxt, hit = (np.asarray(x) for x in _single_agent_successors(jnp.asarray(solid), jnp.asarray(victim_at)))
+    h, w = solid.shape
+    inf = np.iinfo(np.int32).max // 2
+    dist = np.full((h, w, 4), inf, np.int64)
+    if goal_region_mask is not None:
+        dist[goal_region_mask] = 0
+    while True:
+        after = dist[nxt[..., 0], nxt[..., 1], nxt[..., 2]]  # [H, W, 4, A]
+        cost = np.where(hit, 1, 1 + after) if triage else 1 + after
+        new = np.minimum(dist, cost.min(-1))
+        if np.array_equal(new, dist):
+            break
+        dist = new
+    dist[solid] = -1
+    return np.where(dist >= inf, -1, dist).astype(np.int32)

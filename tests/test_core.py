@@ -123,6 +123,7 @@ def test_epsilon_schedule_and_greedy():
     picks = [int(ql.epsilon_greedy(q, 1.0, 0.0, u, valid)) for u in np.linspace(0, 0.999, 50)]
     assert set(picks) == {0, 2} and 20 <= picks.count(0) <= 30
     assert int(ql.epsilon_greedy(q, 0.0, 0.9, 0.0, valid)) == 2  # greedy over valid only
+    assert int(ql.epsilon_greedy(q, 0.0, 0.9, 0.0, valid, mask_greedy=False)) == 1  # greedy over all
 
 
 def test_hard_target_copy_period():
@@ -175,7 +176,8 @@ def test_iql_learns_tiny_map_and_best_params_replay():
     for k in range(2):
         # the kept best params reproduce the best test, which is the best of all recorded tests
         params = jax.tree.map(lambda x: x[k], res["best_params"])
-        ret, length, terminated, _ = tr.greedy_episode(params, jax.random.PRNGKey(0))
+        ret, length, terminated, optimal = tr.greedy_episode(params, jax.random.PRNGKey(0))
+        assert int(optimal) == opt
         assert float(ret) == res["best_return"][k] == res["test_return"][k].max() == 200.0
         assert int(length) == res["best_length"][k] == opt and bool(terminated)
         first = res["episodes_to_optimal"][k] // 10 - 1

@@ -60,14 +60,16 @@ class IndependentDQN:
       row_fn(transition) -> dict: the replay row of learner-independent fields (defaults to
         ``default_row``); the trainer's transition has obs, action, reward, next_obs, done, info.
       valid_fn(obs) -> bool[n_actions]: actions allowed in ``obs`` (e.g. options whose initiation set
-        holds); None = all.
+        holds); None = all. Random exploration only ever picks valid actions.
+      mask_greedy: whether the greedy choice is restricted to valid actions too (False: the learner
+        must learn validity itself, e.g. from a penalty).
     """
 
     def __init__(self, obs_dim: int, n_actions: int, n: int, cfg: DQNConfig, target_fn: Callable,
-                 row_fn: Callable = default_row, valid_fn: Callable | None = None):
+                 row_fn: Callable = default_row, valid_fn: Callable | None = None, mask_greedy: bool = True):
         self.dqn = DQN(obs_dim, n_actions, cfg, target_fn)
         self.cfg, self.n, self.n_actions, self.obs_dim = cfg, n, n_actions, obs_dim
-        self.row_fn, self.valid_fn = row_fn, valid_fn
+        self.row_fn, self.valid_fn, self.mask_greedy = row_fn, valid_fn, mask_greedy
         self.action_shape = (n,)
         self.act_noise = {"explore": (n,), "action": (n,)}
         self.update_noise = {"sample": (n, cfg.batch_size)}
@@ -95,7 +97,7 @@ class IndependentDQN:
     def act(self, state, obs, carry, noise, step):
         eps = linear_epsilon(self.cfg, step)
         q, valid = self._q(state.params, obs), self._valid(obs)
-        pick = lambda q_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, valid)
+        pick = lambda q_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, valid, self.mask_greedy)
         return jax.vmap(pick)(q, noise["explore"], noise["action"]), carry
 
     def observe(self, state, transition):
@@ -109,6 +111,6 @@ class IndependentDQN:
 
     def greedy_act(self, params, obs, carry):
         q, valid = self._q(params, obs), self._valid(obs)
-        if valid is not None:
+        if valid is not None and self.mask_greedy:
             q = jnp.where(valid, q, -jnp.inf)
         return jnp.argmax(q, axis=-1).astype(jnp.int32), carry

@@ -89,15 +89,16 @@ def linear_epsilon(cfg: DQNConfig, step: jax.Array) -> jax.Array:
 
 
 def epsilon_greedy(q: jax.Array, eps: jax.Array, u_explore: jax.Array, u_action: jax.Array,
-                   valid: jax.Array | None = None) -> jax.Array:
-    """Greedy in q float[A] with probability 1 - eps, else uniform over the (valid) actions.
+                   valid: jax.Array | None = None, mask_greedy: bool = True) -> jax.Array:
+    """Greedy in q float[A] with probability 1 - eps, else uniform over the ``valid`` actions.
 
-    u_explore, u_action: scalar uniforms in [0, 1), drawn by the caller.
+    ``mask_greedy`` (static): the greedy choice is restricted to ``valid`` too; False lets it pick any
+    action (a learner that must learn validity itself). u_explore, u_action: uniforms in [0, 1).
     """
     n = q.shape[-1]
     if valid is None:
         valid = jnp.ones((n,), bool)
-    greedy = jnp.argmax(jnp.where(valid, q, NEG_INF))
+    greedy = jnp.argmax(jnp.where(valid, q, NEG_INF) if mask_greedy else q)
     # the (floor(u * n_valid))-th valid action
     rank = jnp.floor(u_action * valid.sum()).astype(jnp.int32)
     random = jnp.argmax(jnp.cumsum(valid) > rank)

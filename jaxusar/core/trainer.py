@@ -51,6 +51,7 @@ class TrialState:
     """Everything one trial carries between steps (the trainer adds a leading trials axis)."""
 
     key: jax.Array
+    env_params: object        # per-trial env parameters (None for an env without any)
     env_state: object
     obs: jax.Array
     actor: object
@@ -118,22 +119,42 @@ class Trainer:
         self._init = jax.jit(jax.vmap(self._init_trial))
 
     # -- state ----------------------------------------------------------------------------------
-    def init(self, keys: jax.Array) -> TrainState:
-        return TrainState(trials=self._init(keys),
+    def init(self, keys: jax.Array, env_params=None) -> TrainState:
+        """Fresh state for ``len(keys)`` trials; ``env_params`` (leading trials axis) for a
+        parameterised env (``reset(key, params)``, ``step(key, state, action, params)``)."""
+        return TrainState(trials=self._init(keys, env_params),
                           step=jnp.zeros((), jnp.int32), chunk=jnp.zeros((), jnp.int32))
 
-    def _init_trial(self, key) -> TrialState:
+    # -- env calls, with or without per-trial params --------------------------------------------
+    def _reset(self, key, env_params):
+        return self.env.reset(key) if env_params is None else self.env.reset(key, env_params)
+
+    def _step(self, state, action, env_params):
+        if env_params is None:
+            return self.env.step(None, state, action)
+        return self.env.step(None, state, action, env_params)
+
+    def _optimal_steps(self, env_state, env_params):
+        """The optimum a test from ``env_state`` is held to: the env's own per-start answer if it
+        has one (random-start tasks), else the fixed ``optimal_steps``."""
+        if hasattr(self.env, "optimal_steps_from"):
+            return self.env.optimal_steps_from(env_state, env_params)
+        return jnp.asarray(self.optimal_steps, jnp.int32)
+
+    def _init_trial(self, key, env_params) -> TrialState:
         k_env, k_learner = jax.random.split(jax.random.fold_in(key, 0x5EED))
-        obs, env_state = self.env.reset(k_env)
+        obs, env_state = self._reset(k_env, env_params)
         actor = self.learner.init_carry()
         action = jnp.zeros(self.learner.action_shape, jnp.int32)
-        transition = self._transition(obs, env_state, action, actor)
+        next_obs, _, reward, done, info = self._step(env_state, action, env_params)
+        transition = {"obs": obs, "action": action, "reward": reward, "next_obs": next_obs, "done": done,
+                      "info": info, "carry": actor, "next_carry": actor}
         learner = self.learner.init(k_learner, transition)
         params = self.learner.policy(learner)
         n, t = self.cfg.episodes, self.n_tests
         zeros_like_slots = jax.tree.map(lambda p: jnp.zeros((self.n_slots, *p.shape), p.dtype), params)
         return TrialState(
-            key=key, env_state=env_state, obs=obs, actor=actor, learner=learner,
+            key=key, env_params=env_params, env_state=env_state, obs=obs, actor=actor, learner=learner,
             episodes=jnp.zeros((), jnp.int32), ep_return=jnp.zeros((), jnp.float32),
             ep_length=jnp.zeros((), jnp.int32), env_steps=jnp.zeros((), jnp.int32),
             pending_test=jnp.full((), NO_TEST, jnp.int32),
@@ -145,11 +166,6 @@ class Trainer:
             best_length=jnp.full((), NEVER, jnp.int32), best_test=jnp.full((), NO_TEST, jnp.int32),
             first_optimal_test=jnp.full((), NEVER, jnp.int32),
         )
-
-    def _transition(self, obs, env_state, action, actor):
-        next_obs, _, reward, done, info = self.env.step(None, env_state, action)
-        return {"obs": obs, "action": action, "reward": reward, "next_obs": next_obs, "done": done,
-                "info": info, "carry": actor, "next_carry": actor}
 
     # -- one chunk ------------------------------------------------------------------------------
     def _noise(self, trials: TrialState, chunk):
@@ -173,7 +189,7 @@ class Trainer:
     def _env_step(self, s: TrialState, noise, step) -> TrialState:
         lrn, cfg = self.learner, self.cfg
         action, actor = lrn.act(s.learner, s.obs, s.actor, noise, step)
-        next_obs, env_state, reward, done, info = self.env.step(None, s.env_state, action)
+        next_obs, env_state, reward, done, info = self._step(s.env_state, action, s.env_params)
         learner = lrn.observe(s.learner, {"obs": s.obs, "action": action, "reward": reward, "next_obs": next_obs,
                                           "done": done, "info": info, "carry": s.actor, "next_carry": actor})
         ep_return, ep_length = s.ep_return + reward, s.ep_length + _steps_of(info)
@@ -181,7 +197,7 @@ class Trainer:
         slot = jnp.where(counted, s.episodes, cfg.episodes)
         episodes = s.episodes + done
         test_due = counted & (episodes % cfg.test_every == 0)
-        obs0, state0 = self.env.reset(noise["reset_key"])
+        obs0, state0 = self._reset(noise["reset_key"], s.env_params)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)
         return s.replace(
             env_state=pick(state0, env_state), obs=pick(obs0, next_obs), actor=pick(lrn.init_carry(), actor),
@@ -202,47 +218,64 @@ class Trainer:
         return s.replace(snaps=Snapshots(params, index, s.snaps.count + due),
                          pending_test=jnp.full((), NO_TEST, jnp.int32))
 
-    def greedy_episode(self, params, key):
-        """One greedy test episode: (return, primitive steps, terminated, final env state)."""
-        obs, env_state = self.env.reset(key)
-        carry0 = (obs, env_state, self.learner.init_carry(), jnp.zeros((), jnp.float32),
-                  jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
+    def greedy_episode(self, params, key, env_params=None):
+        """One greedy test episode: (return, primitive steps, terminated, optimal steps from its start).
 
-        def body(c, _):
-            obs, es, actor, ret, length, done, terminated = c
-            action, actor2 = self.learner.greedy_act(params, obs, actor)
-            obs2, es2, r, d, info = self.env.step(None, es, action)
-            live = ~done
-            keep = lambda new, old: jax.tree.map(lambda x, y: jnp.where(live, x, y), new, old)
-            return (keep(obs2, obs), keep(es2, es), keep(actor2, actor), ret + jnp.where(live, r, 0.0),
-                    length + jnp.where(live, _steps_of(info), 0), done | d,
-                    terminated | (live & info["terminated"])), None
+        A while loop, so a test that ends early costs only its own steps (under vmap: the longest lane's).
+        """
+        if hasattr(self.env, "reset_test"):  # an env whose tests start elsewhere than its training
+            obs, env_state = self.env.reset_test(key, env_params)
+        else:
+            obs, env_state = self._reset(key, env_params)
+        optimal = self._optimal_steps(env_state, env_params)
+        zero_f, zero_i, false = jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32), jnp.zeros((), bool)
 
-        (_, es, _, ret, length, _, terminated), _ = jax.lax.scan(body, carry0, None, length=self.test_horizon)
-        return ret, length, terminated, es
+        def body(c):
+            obs, es, actor, ret, length, calls, _, _ = c
+            action, actor = self.learner.greedy_act(params, obs, actor)
+            obs, es, r, done, info = self._step(es, action, env_params)
+            return obs, es, actor, ret + r, length + _steps_of(info), calls + 1, done, info["terminated"]
 
-    def _evaluate(self, s: TrialState) -> TrialState:
-        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), i))(s.snaps.test_index)
-        ret, length, terminated, _ = jax.vmap(self.greedy_episode)(s.snaps.params, keys)
-        used = s.snaps.test_index != NO_TEST
-        optimal = used & terminated & (length <= self.optimal_steps + self.cfg.optimal_slack)
-        idx = jnp.where(used, s.snaps.test_index, self.n_tests)
-        # best = highest return, then fewest steps, then earliest test
-        score_ret = jnp.where(used, ret, -jnp.inf)
-        order = jnp.lexsort((s.snaps.test_index, length, -score_ret))
-        b = order[0]
-        better = used[b] & ((ret[b] > s.best_return) | ((ret[b] == s.best_return) & (length[b] < s.best_length)))
-        best_params = jax.tree.map(lambda new, old: jnp.where(better, new[b], old), s.snaps.params, s.best_params)
+        def cond(c):
+            return ~c[6] & (c[5] < self.test_horizon)
+
+        c = jax.lax.while_loop(cond, body, (obs, env_state, self.learner.init_carry(), zero_f, zero_i, zero_i,
+                                            false, false))
+        return c[3], c[4], c[7], optimal
+
+    def _evaluate_slot(self, s: TrialState, j) -> TrialState:
+        """Run snapshot ``j``'s greedy test (if the slot is used); record it; keep the best params."""
+        test = s.snaps.test_index[j]
+        params = jax.tree.map(lambda x: x[j], s.snaps.params)
+        key = jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), test)
+        ret, length, terminated, optimal_steps = self.greedy_episode(params, key, s.env_params)
+        used = test != NO_TEST
+        optimal = used & terminated & (length <= optimal_steps + self.cfg.optimal_slack)
+        idx = jnp.where(used, test, self.n_tests)
+        # best = highest return, then fewest steps; the earlier test wins a tie (slots are in test order)
+        better = used & ((ret > s.best_return) | ((ret == s.best_return) & (length < s.best_length)))
         return s.replace(
             test_return=s.test_return.at[idx].set(ret), test_length=s.test_length.at[idx].set(length),
             test_optimal=s.test_optimal.at[idx].set(optimal),
-            best_params=best_params,
-            best_return=jnp.where(better, ret[b], s.best_return),
-            best_length=jnp.where(better, length[b], s.best_length),
-            best_test=jnp.where(better, s.snaps.test_index[b], s.best_test),
-            first_optimal_test=jnp.minimum(s.first_optimal_test, jnp.min(jnp.where(optimal, idx, NEVER))),
-            snaps=Snapshots(s.snaps.params, jnp.full_like(s.snaps.test_index, NO_TEST), jnp.zeros((), jnp.int32)),
+            best_params=jax.tree.map(lambda new, old: jnp.where(better, new, old), params, s.best_params),
+            best_return=jnp.where(better, ret, s.best_return),
+            best_length=jnp.where(better, length, s.best_length),
+            best_test=jnp.where(better, test, s.best_test),
+            first_optimal_test=jnp.where(optimal, jnp.minimum(s.first_optimal_test, test), s.first_optimal_test),
         )
+
+    def _evaluate(self, trials: TrialState) -> TrialState:
+        """All snapshots of this chunk, slot by slot; slots no trial used are skipped (scalar cond)."""
+        used_slots = jnp.max(trials.snaps.count)
+        evaluate = jax.vmap(self._evaluate_slot, in_axes=(0, None))
+
+        def one(j, t):
+            return jax.lax.cond(j < used_slots, evaluate, lambda t, j: t, t, j)
+
+        trials = jax.lax.fori_loop(0, self.n_slots, one, trials)
+        snaps = trials.snaps
+        return trials.replace(snaps=Snapshots(snaps.params, jnp.full_like(snaps.test_index, NO_TEST),
+                                              jnp.zeros_like(snaps.count)))
 
     def _run_chunk(self, state: TrainState) -> TrainState:
         act_noise, upd_noise = self._noise(state.trials, state.chunk)
@@ -264,7 +297,7 @@ class Trainer:
             return (trials.replace(learner=learner), step), None
 
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
-        trials = jax.vmap(self._evaluate)(trials)
+        trials = self._evaluate(trials)
         return TrainState(trials=trials, step=step, chunk=state.chunk + 1)
 
     # -- host loop ------------------------------------------------------------------------------
@@ -282,9 +315,9 @@ class Trainer:
         return state
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
-              on_chunk: Callable | None = None) -> TrainState:
+              on_chunk: Callable | None = None, env_params=None) -> TrainState:
         """Run chunks until every trial has ``episodes`` episodes. ``progress(info)`` after each chunk."""
-        state = self.init(keys) if state is None else state
+        state = self.init(keys, env_params) if state is None else state
         start = time.perf_counter()
         while not self.done(state):
             if int(state.chunk) >= self.max_chunks():

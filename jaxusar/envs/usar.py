@@ -46,6 +46,34 @@ class EnvState:
     t: jax.Array
 
 
+def apply_actions(solid, victim_at, agent_pos, agent_dir, triaged, actions):
+    """The step rules on plain arrays (the one implementation every env here uses).
+
+    solid bool[H, W]: cells no agent may enter (blocked or holding a victim); victim_at int32[H, W]:
+    victim index per cell, -1 elsewhere. Map arrays may be traced, so a batch of different maps or
+    tasks can be vmapped. Returns (agent_pos, agent_dir, triaged, newly_triaged).
+    """
+    height, width = solid.shape
+    n_agents, n_victims = agent_dir.shape[0], triaged.shape[0]
+    pos, dirs = agent_pos, agent_dir
+    newly = jnp.zeros_like(triaged)
+    for i in range(n_agents):  # index order: agent i sees agents < i already moved
+        a, d = actions[i], dirs[i]
+        front = pos[i] + jnp.asarray(DIR_DELTA)[d]
+        inside = (front[0] >= 0) & (front[0] < height) & (front[1] >= 0) & (front[1] < width)
+        front = jnp.clip(front, 0, jnp.array([height - 1, width - 1]))
+        others = jnp.arange(n_agents) != i
+        occupied = jnp.any(others & jnp.all(pos == front, axis=-1))
+        can_move = (a == FORWARD) & inside & ~solid[front[0], front[1]] & ~occupied
+        pos = pos.at[i].set(jnp.where(can_move, front, pos[i]))
+        turned = jnp.where(a == TURN_LEFT, (d + 3) % 4, jnp.where(a == TURN_RIGHT, (d + 1) % 4, d))
+        dirs = dirs.at[i].set(turned)
+        victim = jnp.where(inside, victim_at[front[0], front[1]], -1)
+        hit = (a == TRIAGE) & (jnp.arange(n_victims) == victim) & ~triaged
+        newly, triaged = newly | hit, triaged | hit
+    return pos, dirs, triaged, newly
+
+
 def _check_override(name: str, value: Any, kind: type, low=None, high=None) -> None:
     ok_type = isinstance(value, numbers.Integral) if kind is int else isinstance(value, numbers.Real)
     if isinstance(value, bool) or not ok_type:
@@ -127,12 +155,6 @@ class USAREnv:
         parts.append(state.triaged.astype(jnp.float32))
         return jnp.concatenate(parts)
 
-    def front_cell(self, pos: jax.Array, direction: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(cell in front clipped to the grid, whether it is inside the grid)."""
-        front = pos + jnp.asarray(DIR_DELTA)[direction]
-        inside = (front[0] >= 0) & (front[0] < self.height) & (front[1] >= 0) & (front[1] < self.width)
-        return jnp.clip(front, 0, jnp.array([self.height - 1, self.width - 1])), inside
-
     def step(self, key: jax.Array, state: EnvState, actions: jax.Array):
         """One joint step. Returns (obs, state, reward float32, done bool, info).
 
@@ -141,21 +163,8 @@ class USAREnv:
         """
         del key
         actions = self._check_actions(actions)
-        solid, victim_at = jnp.asarray(self._solid), jnp.asarray(self._victim_at)
-        pos, dirs, triaged = state.agent_pos, state.agent_dir, state.triaged
-        newly = jnp.zeros_like(triaged)
-        for i in range(self.n_agents):  # index order: agent i sees agents < i already moved
-            a, d = actions[i], dirs[i]
-            front, inside = self.front_cell(pos[i], d)
-            others = jnp.arange(self.n_agents) != i
-            occupied = jnp.any(others & jnp.all(pos == front, axis=-1))
-            can_move = (a == FORWARD) & inside & ~solid[front[0], front[1]] & ~occupied
-            pos = pos.at[i].set(jnp.where(can_move, front, pos[i]))
-            turned = jnp.where(a == TURN_LEFT, (d + 3) % 4, jnp.where(a == TURN_RIGHT, (d + 1) % 4, d))
-            dirs = dirs.at[i].set(turned)
-            victim = jnp.where(inside, victim_at[front[0], front[1]], -1)
-            hit = (a == TRIAGE) & (jnp.arange(self.n_victims) == victim) & ~triaged
-            newly, triaged = newly | hit, triaged | hit
+        pos, dirs, triaged, newly = apply_actions(jnp.asarray(self._solid), jnp.asarray(self._victim_at),
+                                                  state.agent_pos, state.agent_dir, state.triaged, actions)
         t = state.t + 1
         state = EnvState(agent_pos=pos, agent_dir=dirs, triaged=triaged, t=t)
         reward = (self.triage_reward * newly.sum() + self.step_penalty).astype(jnp.float32)

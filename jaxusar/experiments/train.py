@@ -31,7 +31,7 @@ from jaxusar.core import Trainer
 from jaxusar.experiments.plots import training_figure
 
 
-ALIASES = {"doc": "option_critic"}  # command-line name -> module in jaxusar/algos
+ALIASES = {"doc": "option_critic", "hierarchical": "coordinator"}  # command-line name -> module in jaxusar/algos
 
 
 def algorithm_module(name: str):

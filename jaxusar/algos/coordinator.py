@@ -1,0 +1,173 @@
+"""The coordinator: SMDP Q-learning over joint options on the graph view (paper Sec. IV-C).
+
+The coordinator sees the abstract state (each agent's region one-hot, the triaged flags) and picks a
+joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). The agents run their trained
+sub-policies greedily in the real team env until the first agent's option terminates (or the episode
+ends); then all options terminate and the coordinator decides again: one SMDP transition of k steps.
+
+Decisions left open by the paper, made here:
+
+* Invalid joint option (some agent's option has its initiation set unmet, or that agent has no
+  sub-policy for it): reward ``invalid_penalty`` (default -100), time advances one primitive step with
+  every agent standing still, and the coordinator decides again. So an episode still ends at the horizon.
+  For learning, that transition is a dead end: its target is the penalty alone, with no bootstrap.
+  (With a bootstrap, a greedy choice of an invalid option repeats in the unchanged state, and the
+  penalties compound into Q-values near -100 / (1 - gamma) for every option; measured: no trial learned.)
+* An agent for which no option is available (e.g. it has triaged the victim of its room and the other
+  victim is being handled) is idle: its part of the joint option is ignored and it does TRIAGE, a no-op
+  unless it faces an untriaged victim. A joint option is valid when every non-idle agent's part is valid.
+* Exploration: random picks are drawn among the valid joint options only; the greedy choice ranges over
+  all of them, so the greedy policy must learn validity from the penalty, as in the paper. (Random
+  picks over all 16 made a decision sequence mostly of invalid choices that ate the epsilon schedule.)
+  The SMDP target maximises over the joint options valid at the next decision.
+* Options also terminate after ``option_timeout`` primitive steps (default 50, well above any optimal
+  sub-task path on the two-rooms map): an imperfect sub-policy can loop from a state it rarely saw,
+  and without a timeout one such loop ate the rest of the episode (measured: most of 300 steps).
+* Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
+  sum_i gamma^i r_{t+i} and k, and the target is r + gamma^k max_valid Q (``smdp_q_learning_target``).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxusar.algos.options import Options
+from jaxusar.config import CoordinatorConfig, DQNConfig
+from jaxusar.core.learners import IndependentDQN, default_row
+from jaxusar.core.qlearning import smdp_q_learning_target
+from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
+
+DEFAULTS = {
+    # sub-policies (paper Fig. 4): a test every 10 episodes; the pseudo-reward tasks are short, so
+    # they can afford a wider net and an update every 4 steps (more sample-efficient than IQL's setting)
+    "dqn": {"hidden": [64, 64], "train_every": 4, "eps_decay_steps": 20000, "learning_starts": 500},
+    "train": {"episodes": 500, "test_every": 10, "chunk_steps": 4000},
+}
+
+
+@struct.dataclass
+class CoordinatorParams:
+    """Per-trial data the macro env needs: the trained sub-policies, stacked over tasks."""
+
+    subpolicy: object  # params with a leading task axis
+
+
+class MacroEnv:
+    """The team env seen by the coordinator: one ``step`` = one joint option run to termination.
+
+    ``policy_for`` int[n_agents, O]: which sub-policy task executes option o for agent i (-1: none).
+    ``subpolicy_act(params, obs) -> action[1]`` runs one sub-policy greedily; ``observe(pos, dir, flag)``
+    builds its input.
+    """
+
+    def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
+                 gamma: float, invalid_penalty: float, option_timeout: int = 50):
+        self.env, self.options = env, options
+        self.policy_for = np.asarray(policy_for, np.int32)
+        self.subpolicy_act, self.observe_agent = subpolicy_act, observe
+        self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
+        self.option_timeout = int(option_timeout)
+        self.n_agents, self.horizon = env.n_agents, env.horizon
+        self.n_regions = env.graph.n_regions
+        self.n_joint = options.n ** env.n_agents
+        self.obs_dim = env.n_agents * self.n_regions + env.n_victims
+        # joint option index -> per-agent options (agent 0 most significant)
+        self.joint = np.array(list(itertools.product(range(options.n), repeat=env.n_agents)), np.int32)
+
+    # -- abstract state --------------------------------------------------------------------------
+    def observe(self, s: EnvState) -> jax.Array:
+        regions = self.env.graph.region_of(s.agent_pos)
+        return jnp.concatenate([jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)])
+
+    def decode(self, obs: jax.Array):
+        regions = jnp.argmax(obs[: self.n_agents * self.n_regions].reshape(self.n_agents, self.n_regions), -1)
+        return regions, obs[self.n_agents * self.n_regions:] > 0.5
+
+    def available(self, regions: jax.Array, triaged: jax.Array) -> jax.Array:
+        """bool[n_agents, O]: options each agent may start (initiation set met and a sub-policy exists)."""
+        can = jax.vmap(self.options.can_initiate, in_axes=(0, None))(regions, triaged)
+        return can & (jnp.asarray(self.policy_for) >= 0)
+
+    def valid_joint(self, obs: jax.Array) -> jax.Array:
+        """bool[n_joint]: joint options whose every non-idle agent's part is available."""
+        avail = self.available(*self.decode(obs))
+        idle = ~avail.any(-1)
+        ok = avail[jnp.arange(self.n_agents), jnp.asarray(self.joint)] | idle  # [n_joint, n_agents]
+        return ok.all(-1)
+
+    # -- dynamics ----------------------------------------------------------------------------------
+    def reset(self, key, p: CoordinatorParams | None = None):
+        obs, s = self.env.reset(key)
+        return self.observe(s), s
+
+    def primitive_actions(self, s: EnvState, options: jax.Array, active: jax.Array, p: CoordinatorParams):
+        """int32[n_agents]: each active agent's sub-policy action for its option; TRIAGE for idle ones."""
+        acts = []
+        for i in range(self.n_agents):
+            o = options[i]
+            task = jnp.asarray(self.policy_for)[i, o]
+            params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
+            victim = jnp.asarray(self.options.victim)[o]
+            flag = jnp.where(victim >= 0, s.triaged[jnp.maximum(victim, 0)], False)
+            a = self.subpolicy_act(params, self.observe_agent(s.agent_pos[i], s.agent_dir[i], flag))[0]
+            acts.append(jnp.where(active[i], a, TRIAGE))
+        return jnp.stack(acts).astype(jnp.int32)
+
+    def step(self, key, s: EnvState, action: jax.Array, p: CoordinatorParams):
+        options = jnp.asarray(self.joint)[action[0]]
+        obs = self.observe(s)
+        avail = self.available(*self.decode(obs))
+        active = avail.any(-1)  # non-idle agents
+        valid = self.valid_joint(obs)[action[0]]
+        options_done = lambda st: jnp.any(active & jax.vmap(self.options.terminated)(
+            options, self.env.graph.region_of(st.agent_pos), jnp.broadcast_to(st.triaged, (self.n_agents,) + st.triaged.shape)))
+
+        def body(c):
+            st, ret, disc, k, done = c
+            _, st, r, done, _ = self.env.step(None, st, self.primitive_actions(st, options, active, p))
+            return st, ret + r, disc + self.gamma ** k * r, k + 1, done
+
+        def cond(c):
+            st, _, _, k, done = c
+            return ~done & ~options_done(st) & (k < self.option_timeout)
+
+        zero = jnp.zeros((), jnp.float32)
+        run = lambda st: jax.lax.while_loop(cond, body, (st, zero, zero, jnp.zeros((), jnp.int32),
+                                                         jnp.zeros((), bool)))
+        # an invalid choice: penalty, one step of standing still
+        stand = lambda st: (st.replace(t=st.t + 1), jnp.float32(self.invalid_penalty),
+                            jnp.float32(self.invalid_penalty), jnp.ones((), jnp.int32), st.t + 1 >= self.horizon)
+        st, ret, disc, k, _ = jax.lax.cond(valid, run, stand, s)
+        terminated = jnp.all(st.triaged)
+        done = terminated | (st.t >= self.horizon)
+        info = {"terminated": terminated, "steps": k, "discounted_reward": disc, "valid": valid}
+        return self.observe(st), st, ret, done, info
+
+
+def coordinator_dqn(cfg: CoordinatorConfig) -> DQNConfig:
+    return DQNConfig(hidden=cfg.hidden, lr=cfg.lr, gamma=cfg.gamma, batch_size=cfg.batch_size,
+                     buffer_capacity=cfg.buffer_capacity, learning_starts=cfg.learning_starts, train_every=1,
+                     target_update_every=cfg.target_update_every, eps_start=cfg.eps_start, eps_end=cfg.eps_end,
+                     eps_decay_steps=cfg.eps_decay_steps, double_dqn=False)
+
+
+def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
+    """A single DQN over joint options with the SMDP target (Sutton et al. 1999, eq. 8)."""
+
+    def row(transition):
+        info = transition["info"]
+        row = default_row(transition)
+        return {**row, "reward": info["discounted_reward"], "k": info["steps"],
+                "terminal": row["terminal"] | ~info["valid"]}  # an invalid choice is a dead end
+
+    def target(batch, q_t_target, q_t_online):
+        valid_t = jax.vmap(macro.valid_joint)(batch["next_obs"].astype(jnp.float32))
+        return smdp_q_learning_target(batch["reward"], batch["k"], batch["terminal"], cfg.gamma, q_t_target, valid_t)
+
+    return IndependentDQN(macro.obs_dim, macro.n_joint, 1, coordinator_dqn(cfg), target, row_fn=row,
+                          valid_fn=macro.valid_joint, mask_greedy=False)

@@ -1,0 +1,190 @@
+"""Option sub-policies trained on pseudo-rewards (paper Sec. IV-B, Fig. 4).
+
+Each task is one option for one agent, in the map with the other agents and the other victims
+removed: +100 on reaching the sub-goal region (NAVIGATE) or on triaging the victim (TRIAGE), -1 every
+step, terminal there. Tasks:
+
+* NAVIGATE-TO-R for agent i (the paper trains "each medic to each room"), where i's start region is
+  adjacent to R (else that agent has no sub-policy for R: the paper's chained navigation is future
+  work, Sec. IV-B). Training episodes start anywhere in the option's initiation set (every open cell
+  of the regions adjacent to R, any facing); greedy tests start from agent i's start, which is what
+  Fig. 4 measures. Why not train from the start alone: the coordinator terminates every option when
+  one completes, so navigation is often re-issued mid-way from hall states a start-only policy never
+  saw; such a policy then loops to the horizon (measured: no coordinator trial ever triaged both).
+* TRIAGE-v, shared by all agents (its input is one agent's features), starting uniformly at any open
+  cell of v's room with any facing (``triage_start: room``: "assuming the agent is already in the
+  room", Sec. IV-B) or at the room's entry cells (``entry``: cells next to another region).
+
+Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
+(the task's victim triaged; 0 for NAVIGATE), so all tasks x all trials stack into one vmapped batch;
+the per-task map data (cells blocked, the task's victim, goal, start states, discount, the exact
+distance from every start) travel as env params. The discount is per task (paper Fig. 4f: the
+triage-bottom task needed gamma 0.9), stored in each replay row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxusar import planning
+from jaxusar.algos.options import NAVIGATE, Options
+from jaxusar.config import ConfigError, DQNConfig
+from jaxusar.core.learners import IndependentDQN, default_row
+from jaxusar.core.qlearning import q_learning_target
+from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, EnvState, USAREnv, apply_actions
+
+SUCCESS_REWARD, STEP_REWARD = 100.0, -1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    name: str
+    option: int
+    agent: int            # the agent whose start is used (NAVIGATE); -1 = any agent (TRIAGE)
+    starts: np.ndarray    # int32[M, 3] (row, col, dir) training start states
+    test_starts: np.ndarray  # int32[N, 3] greedy-test start states
+
+
+@struct.dataclass
+class TaskParams:
+    """Per-task env data (a leading task axis when stacked)."""
+
+    solid: jax.Array        # bool[H, W]
+    victim_at: jax.Array    # int32[H, W]: 0 on the task's victim, -1 elsewhere
+    goal_region: jax.Array  # int32: region to reach, -1 for a triage task
+    starts: jax.Array       # int32[M, 3], padded by repetition
+    n_starts: jax.Array     # int32
+    test_starts: jax.Array  # int32[N, 3], padded by repetition
+    n_test_starts: jax.Array
+    dist: jax.Array         # int32[H, W, 4]: optimal steps from each state to the sub-goal
+    gamma: jax.Array        # float32
+
+
+def _entry_cells(region: np.ndarray, r: int) -> list[tuple[int, int]]:
+    cells = []
+    for (i, j) in np.argwhere(region == r):
+        for di, dj in DIR_DELTA:
+            ni, nj = i + di, j + dj
+            if 0 <= ni < region.shape[0] and 0 <= nj < region.shape[1] and region[ni, nj] not in (-1, r):
+                cells.append((int(i), int(j)))
+                break
+    return cells
+
+
+def make_tasks(env: USAREnv, options: Options, triage_start: str = "room") -> list[Task]:
+    layout, graph = env.layout, env.graph
+    tasks = []
+    for o in range(options.n):
+        if options.kind[o] == NAVIGATE:
+            near = graph.adjacency[:, options.region[o]]
+            cells = np.argwhere(near[np.maximum(graph.cell_region, 0)] & (graph.cell_region >= 0))
+            victims = {tuple(v) for v in layout.victim_pos}
+            initiation = np.array([[r, c, d] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+            for i, (r, c) in enumerate(layout.agent_start):
+                if near[graph.cell_region[r, c]]:
+                    tasks.append(Task(f"agent{i}:{options.names[o]}", o, i, initiation,
+                                      np.array([[r, c, env.start_dir]], np.int32)))
+        else:
+            room = options.region[o]
+            victim_cell = tuple(layout.victim_pos[options.victim[o]])
+            if triage_start == "entry":
+                cells = _entry_cells(graph.cell_region, room)
+            else:
+                cells = [tuple(x) for x in np.argwhere(graph.cell_region == room)]
+            cells = [c for c in cells if c != victim_cell]
+            starts = np.array([[r, c, d] for r, c in cells for d in range(4)], np.int32)
+            tasks.append(Task(options.names[o], o, -1, starts, starts))
+    return tasks
+
+
+def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: float,
+                task_gamma: dict[str, float]) -> TaskParams:
+    """Stacked TaskParams for ``tasks`` (numpy, leading task axis)."""
+    unknown = sorted(set(task_gamma) - {t.name for t in tasks})
+    if unknown:
+        raise ConfigError(f"hierarchical.task_gamma names unknown task(s) {unknown}; tasks: {[t.name for t in tasks]}")
+    layout, region = env.layout, env.graph.cell_region
+    width = max(len(t.starts) for t in tasks)
+    test_width = max(len(t.test_starts) for t in tasks)
+    pad = lambda a, n: np.concatenate([a, np.repeat(a[:1], n - len(a), 0)])
+    rows = []
+    for t in tasks:
+        victim_at = np.full(layout.shape, -1, np.int32)
+        solid = layout.blocked.copy()
+        v = options.victim[t.option]
+        if v >= 0:
+            cell = tuple(layout.victim_pos[v])
+            victim_at[cell], solid[cell] = 0, True
+        goal = int(options.region[t.option]) if options.kind[t.option] == NAVIGATE else -1
+        dist = planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == goal) if goal >= 0 else None,
+                                      triage=goal < 0)
+        d0 = dist[t.test_starts[:, 0], t.test_starts[:, 1], t.test_starts[:, 2]]
+        if np.any(d0 < 0):
+            raise ConfigError(f"task {t.name}: its sub-goal cannot be reached from some test start")
+        rows.append(dict(solid=solid, victim_at=victim_at, goal_region=np.int32(goal),
+                         starts=pad(t.starts, width), n_starts=np.int32(len(t.starts)),
+                         test_starts=pad(t.test_starts, test_width), n_test_starts=np.int32(len(t.test_starts)),
+                         dist=dist,
+                         gamma=np.float32(task_gamma.get(t.name, dqn_gamma))))
+    return TaskParams(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
+
+
+class SubtaskEnv:
+    """The pseudo-reward env of one sub-task (one agent alone), parameterised by TaskParams."""
+
+    n_agents = 1
+
+    def __init__(self, env: USAREnv, horizon: int):
+        self.height, self.width = env.height, env.width
+        self.horizon = int(horizon)
+        self.region = env.graph.cell_region
+        self.obs_dim = self.height + self.width + 4 + 1
+
+    def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array) -> jax.Array:
+        """One agent's features: one-hot row, col, dir, then the task's victim flag (float32[obs_dim])."""
+        return jnp.concatenate([jax.nn.one_hot(pos[0], self.height), jax.nn.one_hot(pos[1], self.width),
+                                jax.nn.one_hot(direction, 4), jnp.asarray(flag, jnp.float32)[None]])
+
+    def _obs(self, s: EnvState):
+        return self.observe(s.agent_pos[0], s.agent_dir[0], s.triaged[0])
+
+    def reset(self, key, p: TaskParams):
+        return self._start(p.starts[jax.random.randint(key, (), 0, p.n_starts)])
+
+    def reset_test(self, key, p: TaskParams):
+        return self._start(p.test_starts[jax.random.randint(key, (), 0, p.n_test_starts)])
+
+    def _start(self, start):
+        s = EnvState(agent_pos=start[None, :2], agent_dir=start[2:3], triaged=jnp.zeros((1,), bool),
+                     t=jnp.zeros((), jnp.int32))
+        return self._obs(s), s
+
+    def step(self, key, s: EnvState, action, p: TaskParams):
+        pos, d, triaged, _ = apply_actions(p.solid, p.victim_at, s.agent_pos, s.agent_dir, s.triaged, action)
+        s = EnvState(agent_pos=pos, agent_dir=d, triaged=triaged, t=s.t + 1)
+        reached = (p.goal_region >= 0) & (jnp.asarray(self.region)[pos[0, 0], pos[0, 1]] == p.goal_region)
+        success = reached | triaged[0]
+        reward = jnp.where(success, SUCCESS_REWARD, 0.0) + STEP_REWARD
+        done = success | (s.t >= self.horizon)
+        return self._obs(s), s, reward, done, {"terminated": success, "gamma": p.gamma}
+
+    def optimal_steps_from(self, s: EnvState, p: TaskParams) -> jax.Array:
+        return p.dist[s.agent_pos[0, 0], s.agent_pos[0, 1], s.agent_dir[0]]
+
+
+def make_learner(obs_dim: int, cfg: DQNConfig) -> IndependentDQN:
+    """One DQN per task (the trainer's lanes); the discount comes from the task, via the replay row."""
+
+    def row(transition):
+        return {**default_row(transition), "gamma": transition["info"]["gamma"]}
+
+    def target(batch, q_t_target, q_t_online):
+        discount_t = batch["gamma"] * (1.0 - batch["terminal"].astype(jnp.float32))
+        return q_learning_target(batch["reward"], discount_t, q_t_target)
+
+    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, target, row_fn=row)

@@ -1,0 +1,239 @@
+"""The paper's method end to end: sub-policies (all tasks x trials, one vmapped call), then the
+coordinator (all trials, one vmapped call) on each trial's best sub-policies.
+
+Output folder::
+
+    metrics.json          episodes_to_optimal per trial (= sub-policy sum + coordinator, as Table II counts
+                          them), the two parts, the per-task counts, the max over tasks (they train
+                          concurrently), wall seconds per stage, config, versions
+    curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal
+    fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials
+    coordinator.png       the coordinator's train and test curves
+    team_episode.png      the best trial's greedy team episode, as a strip of frames
+    params/               best sub-policy and coordinator params per trial
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from jaxusar import envs, planning
+from jaxusar.algos import coordinator as coord
+from jaxusar.algos import subpolicies as sp
+from jaxusar.algos.options import options_from_graph
+from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
+from jaxusar.core import Trainer
+from jaxusar.experiments.plots import band, smooth, training_figure
+from jaxusar.experiments.train import environment_info, prepare_out, print_progress, summarize
+
+
+def _per_task(x, n_tasks: int, trials: int):
+    """Lanes are ordered [task, trial]: reshape a leading lanes axis to [task, trial, ...]."""
+    return jax.tree.map(lambda a: np.asarray(a).reshape(n_tasks, trials, *np.shape(a)[1:]), x)
+
+
+def build(cfg: ExperimentConfig):
+    env = envs.make(cfg.env.map, **cfg.env.overrides())
+    options = options_from_graph(env.graph)
+    tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start)
+    params = sp.task_params(env, options, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
+    senv = sp.SubtaskEnv(env, env.horizon)
+    sub_learner = sp.make_learner(senv.obs_dim, cfg.dqn)
+    # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
+    min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
+                        enumerate(t.starts for t in tasks)))
+    sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
+                          train_every=cfg.dqn.train_every, optimal_steps=0, min_episode_steps=max(min_steps, 1))
+    policy_for = np.full((env.n_agents, options.n), -1, np.int32)
+    for k, t in enumerate(tasks):
+        agents = [t.agent] if t.agent >= 0 else range(env.n_agents)
+        for i in agents:
+            policy_for[i, t.option] = k
+    c = cfg.hierarchical.coordinator
+    macro = coord.MacroEnv(env, options, policy_for,
+                           subpolicy_act=lambda p, obs: sub_learner.greedy_act(p, obs, None)[0],
+                           observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
+                           option_timeout=c.option_timeout)
+    coord_learner = coord.make_learner(macro, c)
+    coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
+                              optimal_slack=cfg.train.optimal_slack)
+    optimal = planning.optimal_team_steps(env)
+    coord_trainer = Trainer(macro, coord_learner, coord_train, learning_starts=c.learning_starts, train_every=1,
+                            optimal_steps=optimal, min_episode_steps=1, test_horizon=env.horizon)
+    return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
+                sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,
+                optimal=optimal)
+
+
+def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
+    """The greedy coordinator's team episode, primitive step by primitive step (for pictures)."""
+    p = coord.CoordinatorParams(subpolicy=sub_params)
+    decide = jax.jit(lambda obs: learner.greedy_act(coord_params, obs, None)[0][0])
+    info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_joint(obs)))
+    act = jax.jit(lambda s, o, a: macro.primitive_actions(s, o, a, p))
+    finished = jax.jit(lambda s, o, a: jnp.any(a & jax.vmap(macro.options.terminated)(
+        o, macro.env.graph.region_of(s.agent_pos), jnp.broadcast_to(s.triaged, (macro.n_agents,) + s.triaged.shape))))
+    step = jax.jit(macro.env.step)
+    obs, s = macro.reset(None)
+    states, rewards, decisions = [s], [], []
+    done = False
+    while not done:
+        j = int(decide(obs))
+        options = jnp.asarray(macro.joint[j])
+        active, valid = info(obs)
+        decisions.append([macro.options.names[o] for o in macro.joint[j]] + [bool(valid[j])])
+        if not bool(valid[j]):
+            s = s.replace(t=s.t + 1)
+            states.append(s), rewards.append(macro.invalid_penalty)
+            done = int(s.t) >= macro.horizon
+        else:
+            start = len(rewards)
+            while True:
+                _, s, r, d, _ = step(None, s, act(s, options, active))
+                states.append(s), rewards.append(float(r))
+                done = bool(d)
+                if done or bool(finished(s, options, active)) or len(rewards) - start >= macro.option_timeout:
+                    break
+        obs = macro.observe(s)
+    return states, np.asarray(rewards, np.float32), decisions
+
+
+def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, optimal: np.ndarray):
+    """Paper Fig. 4: per task, train steps (moving average) and test steps vs episodes, band over trials."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(names)
+    fig, axes = plt.subplots(n, 2, figsize=(11, 2.3 * n), squeeze=False)
+    for k, name in enumerate(names):
+        tl, tel = results["train_length"][k], results["test_length"][k]
+        band(axes[k, 0], np.arange(1, tl.shape[1] + 1), smooth(tl, 10))
+        band(axes[k, 1], results["test_episode"], tel)
+        for ax, what in zip(axes[k], ("train steps (moving avg 10)", "greedy test steps")):
+            ax.axhline(horizon, color="grey", ls=":", lw=1)
+            if optimal[k] >= 0:
+                ax.axhline(optimal[k], color="green", ls="--", lw=1)
+            ax.set_title(f"{name}: {what}", fontsize=9)
+            ax.set_ylim(0, horizon * 1.05)
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("training episodes")
+    fig.suptitle(f"Sub-policies on pseudo-rewards (mean of {tl.shape[0]} trials; band 25-75th pct; "
+                 "dashed: optimal from the test start (fixed starts) ; dotted: horizon)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run(cfg: ExperimentConfig, trials: int, out, force: bool = False, quiet: bool = False) -> dict:
+    if trials < 1:
+        raise ConfigError(f"--trials must be >= 1, got {trials}")
+    out = prepare_out(out, force)
+    t0 = time.perf_counter()
+    b = build(cfg)
+    tasks, n_tasks = b["tasks"], len(b["tasks"])
+    trial_keys = jax.random.split(jax.random.PRNGKey(cfg.seed), trials)
+    lane_keys = jnp.concatenate([jax.vmap(lambda k, t=t: jax.random.fold_in(k, t))(trial_keys) for t in range(n_tasks)])
+    lane_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), trials, axis=0), b["task_params"])
+    setup = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    sub_state = b["sub_trainer"].train(lane_keys, env_params=lane_params,
+                                       progress=None if quiet else print_progress("sub-policies"))
+    sub = b["sub_trainer"].results(sub_state)
+    sub_wall = time.perf_counter() - t1
+    eto_lanes, test_episode = sub.pop("episodes_to_optimal"), sub.pop("test_episode")
+    sub = {**_per_task(sub, n_tasks, trials), "test_episode": test_episode}
+    sub_eto = [[eto_lanes[k * trials + j] for j in range(trials)] for k in range(n_tasks)]
+
+    t2 = time.perf_counter()
+    best_sub = jax.tree.map(lambda x: jnp.swapaxes(jnp.asarray(x), 0, 1), sub["best_params"])  # [trial, task, ...]
+    c_state = b["coord_trainer"].train(trial_keys, env_params=coord.CoordinatorParams(subpolicy=best_sub),
+                                       progress=None if quiet else print_progress("coordinator"))
+    co = b["coord_trainer"].results(c_state)
+    coord_wall = time.perf_counter() - t2
+
+    per_trial = []
+    for j in range(trials):
+        parts = [sub_eto[k][j] for k in range(n_tasks)]
+        sub_sum = None if None in parts else int(sum(parts))
+        sub_max = None if None in parts else int(max(parts))
+        c_eto = co["episodes_to_optimal"][j]
+        total = None if sub_sum is None or c_eto is None else sub_sum + c_eto
+        per_trial.append({"subpolicies_sum": sub_sum, "subpolicies_max": sub_max, "coordinator": c_eto, "total": total})
+    eto = [p["total"] for p in per_trial]
+    wall = time.perf_counter() - t0
+    metrics = {
+        "algorithm": "hierarchical", "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
+        "subpolicy_episodes_to_optimal": {"sum": [p["subpolicies_sum"] for p in per_trial],
+                                          "max": [p["subpolicies_max"] for p in per_trial],
+                                          "per_task": {t.name: sub_eto[k] for k, t in enumerate(tasks)}},
+        "coordinator_episodes_to_optimal": co["episodes_to_optimal"],
+        "coordinator_summary": summarize(co["episodes_to_optimal"]),
+        "options": list(b["options"].names), "tasks": [t.name for t in tasks],
+        "optimal_team_steps": b["optimal"], "optimal_slack": cfg.train.optimal_slack,
+        "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
+        "wall_seconds": round(wall, 2),
+        "wall_seconds_by_stage": {"setup_and_planning": round(setup, 2), "subpolicies": round(sub_wall, 2),
+                                  "coordinator": round(coord_wall, 2)},
+        "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
+    }
+    write_outputs(out, b, sub, co, best_sub, metrics)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if not quiet:
+        print(f"[hierarchical] episodes_to_optimal per trial (sub-policy sum + coordinator): {eto}; "
+              f"best {metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal; "
+              f"coordinator {co['episodes_to_optimal']}; {wall:.1f}s; wrote {out}")
+    return {"metrics": metrics, "subpolicies": sub, "coordinator": co}
+
+
+def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict) -> None:
+    tasks, env = b["tasks"], b["env"]
+    trials = co["train_return"].shape[0]
+    with open(out / "curves.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["stage", "task", "trial", "kind", "episode", "return", "steps", "optimal"])
+        stages = [("subpolicy", t.name, {**{n: v[k] for n, v in sub.items() if n not in ("test_episode", "best_params")},
+                                         "test_episode": sub["test_episode"]}) for k, t in enumerate(tasks)]
+        for stage, name, r in stages + [("coordinator", "coordinator", co)]:
+            for j in range(trials):
+                for i, (ret, st) in enumerate(zip(r["train_return"][j], r["train_length"][j])):
+                    w.writerow([stage, name, j, "train", i + 1, float(ret), int(st), ""])
+                for e, ret, st, o in zip(r["test_episode"], r["test_return"][j], r["test_length"][j], r["test_optimal"][j]):
+                    w.writerow([stage, name, j, "test", int(e), float(ret), int(st), int(o)])
+    (out / "params").mkdir(exist_ok=True)
+    for j in range(trials):
+        blob = {"subpolicies": jax.tree.map(lambda x: np.asarray(x[j]), best_sub),
+                "coordinator": jax.tree.map(lambda x: np.asarray(x[j]), co["best_params"])}
+        (out / "params" / f"trial_{j}.msgpack").write_bytes(serialization.to_bytes(blob))
+    # the optimum of a fixed-start task; random-start tasks have one per start (not drawn)
+    opt = [int(b["task_params"].dist[k, t.test_starts[0, 0], t.test_starts[0, 1], t.test_starts[0, 2]])
+           if len(t.test_starts) == 1 else -1 for k, t in enumerate(tasks)]
+    subpolicy_figure(sub, [t.name for t in tasks], out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
+    training_figure(co, out / "coordinator.png", "coordinator (SMDP DQN over joint options)", horizon=env.horizon,
+                    optimal_steps=b["optimal"], smooth_window=5)
+    # the best trial: optimal soonest, else the best team test
+    order = sorted(range(trials), key=lambda j: (metrics["episodes_to_optimal"][j] is None,
+                                                  metrics["episodes_to_optimal"][j] or 0,
+                                                  -co["best_return"][j], co["best_length"][j]))
+    j = order[0]
+    states, rewards, decisions = team_episode(b["macro"], b["coord_learner"],
+                                              jax.tree.map(lambda x: x[j], co["best_params"]),
+                                              jax.tree.map(lambda x: jnp.asarray(x[j]), best_sub))
+    from jaxusar.envs.render import save_episode_strip
+
+    plan = " | ".join("+".join(d[:-1]) + ("" if d[-1] else " (invalid)") for d in decisions)
+    save_episode_strip(env, states, out / "team_episode.png", rewards=rewards,
+                       suptitle=f"best trial {j}: greedy coordinator + sub-policies, {len(rewards)} steps, "
+                                f"return {rewards.sum():g}\n{plan}")
+    metrics["best_trial"] = {"trial": j, "steps": len(rewards), "return": float(rewards.sum()), "decisions": decisions}

@@ -1,0 +1,165 @@
+"""The paper's method: options from the graph, pseudo-reward sub-tasks, the SMDP coordinator."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxusar import config, envs, planning
+from jaxusar.algos import coordinator as coord
+from jaxusar.algos import subpolicies as sp
+from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
+from jaxusar.config import ConfigError
+
+THREE_ROOMS = """
+V..#...#..V
+...#...#...
+.......#...
+...#.......
+...#..A#...
+###########
+.....A....V
+"""
+THREE_ROOMS_REGIONS = """
+L left_room room
+H hall hall
+R right_room room
+S south_room room
+---
+LLL#HHH#RRR
+LLL#HHH#RRR
+LLLHHHH#RRR
+LLL#HHHHRRR
+LLL#HHH#RRR
+###########
+SSSSSSSSSSS
+"""
+
+
+@pytest.fixture(scope="module")
+def two_rooms():
+    env = envs.make("two_rooms", horizon=300)
+    return env, options_from_graph(env.graph)
+
+
+def test_two_rooms_options_are_table_one(two_rooms):
+    _, opts = two_rooms
+    assert opts.names == ("NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-BOTTOM-ROOM", "TRIAGE-TOP-VICTIM",
+                          "TRIAGE-BOTTOM-VICTIM")
+    np.testing.assert_array_equal(opts.kind, [NAVIGATE, NAVIGATE, TRIAGE, TRIAGE])
+    np.testing.assert_array_equal(opts.victim, [-1, -1, 0, 1])
+
+
+def test_initiation_and_termination_from_regions(two_rooms):
+    env, opts = two_rooms
+    top, hall, bottom = (env.graph.index(n) for n in ("top_room", "hall_way", "bottom_room"))
+    none = jnp.array([False, False])
+    np.testing.assert_array_equal(opts.can_initiate(hall, none), [True, True, False, False])
+    np.testing.assert_array_equal(opts.can_initiate(top, none), [False, False, True, False])
+    np.testing.assert_array_equal(opts.can_initiate(bottom, none), [False, False, False, True])
+    np.testing.assert_array_equal(opts.can_initiate(top, jnp.array([True, False])), [False] * 4)  # triaged
+    assert bool(opts.terminated(0, top, none)) and not bool(opts.terminated(0, hall, none))
+    assert bool(opts.terminated(3, hall, jnp.array([False, True])))
+    assert not bool(opts.terminated(2, top, jnp.array([False, True])))
+
+
+def test_options_on_a_three_room_map_need_no_new_code():
+    layout = envs.parse_layout(THREE_ROOMS, THREE_ROOMS_REGIONS, "three_rooms")
+    env = envs.make(layout)
+    opts = options_from_graph(env.graph)
+    assert opts.names == ("NAVIGATE-TO-LEFT-ROOM", "NAVIGATE-TO-RIGHT-ROOM", "NAVIGATE-TO-SOUTH-ROOM",
+                          "TRIAGE-LEFT-VICTIM", "TRIAGE-RIGHT-VICTIM", "TRIAGE-SOUTH-VICTIM")
+    left, hall, right, south = range(4)
+    none = jnp.zeros(3, bool)
+    # the south room touches no other region: nothing navigates there, the hall reaches left and right
+    np.testing.assert_array_equal(opts.can_initiate(hall, none), [True, True, False, False, False, False])
+    np.testing.assert_array_equal(opts.can_initiate(south, none), [False, False, False, False, False, True])
+    np.testing.assert_array_equal(opts.can_initiate(left, none), [False] * 3 + [True, False, False])
+    tasks = sp.make_tasks(env, opts)
+    # agent 0 starts in the hall (adjacent to left and right), agent 1 in the south room (adjacent to none)
+    assert [t.name for t in tasks] == ["agent0:NAVIGATE-TO-LEFT-ROOM", "agent0:NAVIGATE-TO-RIGHT-ROOM",
+                                       "TRIAGE-LEFT-VICTIM", "TRIAGE-RIGHT-VICTIM", "TRIAGE-SOUTH-VICTIM"]
+
+
+def test_pseudo_reward_env(two_rooms):
+    env, opts = two_rooms
+    tasks = sp.make_tasks(env, opts)
+    params = sp.task_params(env, opts, tasks, 0.99, {"TRIAGE-BOTTOM-VICTIM": 0.9})
+    senv = sp.SubtaskEnv(env, horizon=50)
+    k = [t.name for t in tasks].index("agent1:NAVIGATE-TO-TOP-ROOM")
+    p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+    assert not params.solid[k][8, 13] and not params.solid[k][0, 0]  # victims removed for navigation
+    obs, s = senv.reset_test(jax.random.PRNGKey(0), p)
+    assert s.agent_pos.tolist() == [[9, 0]] and obs.shape == (senv.obs_dim,)
+    assert int(senv.optimal_steps_from(s, p)) == 11 == planning.agent_distances(env, 1)["to_region"][0]
+    step = jax.jit(senv.step)
+    plan = [0] * 4 + [2] + [0] * 3 + [1] + [0, 0]  # up 4, turn east, 3 east, turn north, 2 up to (3,3)
+    rewards = []
+    for a in plan:
+        obs, s, r, done, info = step(None, s, jnp.array([a]), p)
+        rewards.append(float(r))
+    assert s.agent_pos.tolist() == [[3, 3]] and bool(done) and bool(info["terminated"])
+    assert rewards == [-1.0] * 10 + [99.0]
+    assert float(info["gamma"]) == pytest.approx(0.99)
+    kb = [t.name for t in tasks].index("TRIAGE-BOTTOM-VICTIM")
+    assert float(params.gamma[kb]) == pytest.approx(0.9)
+    assert params.solid[kb][8, 13] and not params.solid[kb][0, 0]  # only its own victim is kept
+    with pytest.raises(ConfigError, match="unknown task"):
+        sp.task_params(env, opts, tasks, 0.99, {"TRIAGE-NOWHERE": 0.5})
+
+
+def test_pseudo_env_times_out_with_step_penalty(two_rooms):
+    env, opts = two_rooms
+    tasks = sp.make_tasks(env, opts)
+    params = sp.task_params(env, opts, tasks, 0.99, {})
+    senv = sp.SubtaskEnv(env, horizon=3)
+    p = jax.tree.map(lambda x: jnp.asarray(x[0]), params)
+    _, s = senv.reset_test(None if False else jax.random.PRNGKey(0), p)
+    for t in range(3):
+        _, s, r, done, info = senv.step(None, s, jnp.array([1]), p)  # turning forever
+        assert float(r) == -1.0 and bool(done) == (t == 2) and not bool(info["terminated"])
+
+
+def _macro(env, opts, invalid_penalty=-100.0, option_timeout=1000):
+    """A macro env whose 'sub-policies' are scripted: always FORWARD (enough for these checks)."""
+    policy_for = np.array([[0, 1, 2, 3], [0, 1, 2, 3]])
+    return coord.MacroEnv(env, opts, policy_for, subpolicy_act=lambda p, obs: jnp.array([0]),
+                          observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9,
+                          invalid_penalty=invalid_penalty, option_timeout=option_timeout)
+
+
+def test_macro_env_validity_and_invalid_choice(two_rooms):
+    env, opts = two_rooms
+    macro = _macro(env, opts)
+    obs, s = macro.reset(None)
+    # both medics start in the hall-way: only the navigation options are available to each
+    assert np.flatnonzero(np.asarray(macro.valid_joint(obs))).tolist() == [0, 1, 4, 5]
+    p = coord.CoordinatorParams(subpolicy=jnp.zeros((4, 1)))
+    obs2, s2, r, done, info = macro.step(None, s, jnp.array([2 * 4 + 0]), p)  # TRIAGE-TOP from the hall
+    assert float(r) == -100.0 and not bool(info["valid"]) and int(info["steps"]) == 1
+    assert int(s2.t) == 1 and s2.agent_pos.tolist() == s.agent_pos.tolist() and not bool(done)
+
+
+def test_macro_step_runs_until_the_first_option_terminates(two_rooms):
+    env, opts = two_rooms
+    macro = _macro(env, opts)
+    obs, s = macro.reset(None)
+    p = coord.CoordinatorParams(subpolicy=jnp.zeros((4, 1)))
+    # both "navigate" by walking north: the bottom medic (9,0) stops at the wall below (4,0), the top
+    # medic cannot move; nothing terminates, so the option runs to the horizon
+    obs, s2, r, done, info = macro.step(None, s, jnp.array([0 * 4 + 0]), p)
+    assert bool(done) and int(info["steps"]) == env.horizon and s2.agent_pos.tolist() == [[0, 14], [5, 0]]
+    # ... unless it times out first
+    obs, s3, r, done, info = _macro(env, opts, option_timeout=7).step(None, s, jnp.array([0]), p)
+    assert not bool(done) and int(info["steps"]) == 7 and int(s3.t) == 7
+
+
+def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
+    env, opts = two_rooms
+    macro = _macro(env, opts)
+    learner = coord.make_learner(macro, config.CoordinatorConfig())
+    row = learner.row_fn({"obs": jnp.zeros(8), "action": jnp.array([0]), "reward": jnp.float32(-100),
+                          "next_obs": jnp.zeros(8), "done": jnp.bool_(False),
+                          "info": {"terminated": jnp.bool_(False), "valid": jnp.bool_(False), "steps": jnp.int32(1),
+                                   "discounted_reward": jnp.float32(-100)}})
+    assert bool(row["terminal"]) and int(row["k"]) == 1 and float(row["reward"]) == -100.0
