@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxusar import envs
+from jaxusar.experiments.train import cpu_name
 
 
 def make_run(env, batch: int, steps: int, chunk: int):
@@ -79,16 +80,6 @@ def measure(env, batch: int, steps: int, chunk: int, repeats: int) -> dict:
     }
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--map", default="two_rooms")
@@ -102,7 +93,7 @@ def main(argv=None) -> dict:
 
     env = envs.make(args.map, horizon=args.horizon)
     machine = {
-        "cpu": cpu_model(), "cpu_count": os.cpu_count(), "backend": jax.default_backend(),
+        "cpu": cpu_name(), "cpu_count": os.cpu_count(), "backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()], "jax": jax.__version__, "python": platform.python_version(),
     }
     print(f"{env}\n{machine['cpu']} x{machine['cpu_count']}, jax {jax.__version__} ({machine['backend']})")

@@ -116,15 +116,17 @@ class CoordinatorConfig:
     invalid_penalty: float = _field(-100.0, doc="reward for a joint option whose initiation set is not met")
     option_timeout: int = _field(50, _positive, "an option running this many primitive steps terminates")
     hidden: tuple[int, ...] = _field((32,), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
-    lr: float = _field(1e-3, _positive)
-    gamma: float = _field(0.99, lambda g: 0 < g <= 1, "discount per primitive step (gamma^k per option)")
+    lr: float = _field(5e-3, _positive)
+    gamma: float = _field(0.95, lambda g: 0 < g <= 1,
+                          "discount per primitive step (gamma^k per option); 0.95, not 0.99: 18 vs 19 team steps "
+                          "must differ in value by more than the fit's noise")
     batch_size: int = _field(16, _positive)
     buffer_capacity: int = _field(2_000, _positive)
     learning_starts: int = _field(16, _non_negative, "decisions before the first update")
     target_update_every: int = _field(20, _positive)
     eps_start: float = _field(1.0, _unit_interval)
-    eps_end: float = _field(0.0, _unit_interval)
-    eps_decay_steps: int = _field(60, _positive, "decisions of the linear epsilon decay")
+    eps_end: float = _field(0.05, _unit_interval)
+    eps_decay_steps: int = _field(200, _positive, "decisions of the linear epsilon decay")
     chunk_steps: int = _field(64, _positive, "decisions per jitted chunk")
 
 

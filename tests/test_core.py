@@ -182,6 +182,8 @@ def test_iql_learns_tiny_map_and_best_params_replay():
         assert int(length) == res["best_length"][k] == opt and bool(terminated)
         first = res["episodes_to_optimal"][k] // 10 - 1
         assert res["test_optimal"][k][first] and not res["test_optimal"][k][:first].any()
+        assert res["episodes_to_solved"][k] <= res["episodes_to_optimal"][k]  # optimal implies solved
+        assert (res["test_solved"][k] == (res["test_return"][k] == 200.0)).all()
     assert res["train_length"].shape == (2, 300) and res["test_return"].shape == (2, 30)
 
 

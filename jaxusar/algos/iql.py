@@ -9,24 +9,9 @@ the bootstrap; time is not in the observation, so treating the cap as terminal w
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from jaxusar.config import DQNConfig
-from jaxusar.core.learners import IndependentDQN
-from jaxusar.core.qlearning import double_q_learning_target, q_learning_target
+from jaxusar.core.learners import IndependentDQN, one_step_target
 from jaxusar.envs import N_ACTIONS, USAREnv
-
-
-def one_step_target(cfg: DQNConfig):
-    """The DQN / Double-DQN target as a function of a replay batch."""
-
-    def target(batch, q_t_target, q_t_online):
-        discount_t = cfg.gamma * (1.0 - batch["terminal"].astype(jnp.float32))
-        if cfg.double_dqn:
-            return double_q_learning_target(batch["reward"], discount_t, q_t_target, q_t_online)
-        return q_learning_target(batch["reward"], discount_t, q_t_target)
-
-    return target
 
 
 def make_learner(env: USAREnv, cfg: DQNConfig) -> IndependentDQN:

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxusar.config import DQNConfig
-from jaxusar.core.qlearning import DQN, epsilon_greedy, linear_epsilon
+from jaxusar.core.qlearning import DQN, double_q_learning_target, epsilon_greedy, linear_epsilon, q_learning_target
 
 
 class Learner(Protocol):
@@ -46,6 +46,23 @@ def default_row(transition: dict) -> dict:
     """obs, action, reward, next_obs and whether the next state is terminal (not a time-limit cut)."""
     return {"obs": transition["obs"], "action": transition["action"], "reward": transition["reward"],
             "next_obs": transition["next_obs"], "terminal": transition["info"]["terminated"]}
+
+
+def one_step_target(cfg: DQNConfig, per_row_gamma: bool = False):
+    """The DQN / Double-DQN target (``cfg.double_dqn``) as a function of a replay batch.
+
+    Bootstraps through time-limit truncations: only ``terminal`` (the task solved) stops it. With
+    ``per_row_gamma`` the discount is each row's ``gamma`` (tasks with their own discount), else cfg.gamma.
+    """
+
+    def target(batch, q_t_target, q_t_online):
+        gamma = batch["gamma"] if per_row_gamma else cfg.gamma
+        discount_t = gamma * (1.0 - batch["terminal"].astype(jnp.float32))
+        if cfg.double_dqn:
+            return double_q_learning_target(batch["reward"], discount_t, q_t_target, q_t_online)
+        return q_learning_target(batch["reward"], discount_t, q_t_target)
+
+    return target
 
 
 class IndependentDQN:

@@ -7,13 +7,19 @@ Shape of a chunk (one jitted call, all trials at once)::
             vmap over trials: act, env.step, observe, episode bookkeeping, auto-reset
         if any trial finished a test-due episode: snapshot its policy params   (lax.cond)
         if step >= learning_starts: vmap over trials: learner.update           (lax.cond)
-    vmap over trials x snapshots: greedy test episode; record tests, keep the best params
+    for each snapshot slot some trial used (lax.cond): vmap over trials: greedy test episode
+        (a while loop: stops when every lane is done); record it, keep the best params
 
 The conditions of both ``lax.cond`` are scalars equal across trials, so vmap never turns them into
 selects that run both branches (DESIGN.md). Greedy tests are evaluated from parameter snapshots
 once per chunk in one batched call (a per-trial test inside the step would run on every step).
 All randomness of a chunk is drawn up front from ``fold_in(trial_key, chunk_index)``, so a trial's
 numbers do not depend on which other trials run beside it.
+
+An env may take per-trial parameters (gymnax style: ``reset(key, params)``, ``step(key, state,
+action, params)``): the sub-policy tasks of the paper's method are one batch of such trials. An env
+may also say where its tests start (``reset_test``) and what is optimal from there
+(``optimal_steps_from``); otherwise tests start like training and ``optimal_steps`` is fixed.
 
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
 stepping (a vmap cannot stop one lane) but records nothing more, so its results are exactly those of
@@ -67,6 +73,7 @@ class TrialState:
     test_return: jax.Array    # float32[n_tests + 1]
     test_length: jax.Array    # int32[n_tests + 1]
     test_optimal: jax.Array   # bool[n_tests + 1]
+    test_solved: jax.Array    # bool[n_tests + 1]: the test terminated (task solved), at any length
     best_params: object
     best_return: jax.Array
     best_length: jax.Array
@@ -161,7 +168,7 @@ class Trainer:
             snaps=Snapshots(zeros_like_slots, jnp.full((self.n_slots,), NO_TEST, jnp.int32), jnp.zeros((), jnp.int32)),
             train_return=jnp.zeros((n + 1,), jnp.float32), train_length=jnp.zeros((n + 1,), jnp.int32),
             test_return=jnp.zeros((t + 1,), jnp.float32), test_length=jnp.zeros((t + 1,), jnp.int32),
-            test_optimal=jnp.zeros((t + 1,), bool),
+            test_optimal=jnp.zeros((t + 1,), bool), test_solved=jnp.zeros((t + 1,), bool),
             best_params=params, best_return=jnp.full((), -jnp.inf, jnp.float32),
             best_length=jnp.full((), NEVER, jnp.int32), best_test=jnp.full((), NO_TEST, jnp.int32),
             first_optimal_test=jnp.full((), NEVER, jnp.int32),
@@ -256,7 +263,7 @@ class Trainer:
         better = used & ((ret > s.best_return) | ((ret == s.best_return) & (length < s.best_length)))
         return s.replace(
             test_return=s.test_return.at[idx].set(ret), test_length=s.test_length.at[idx].set(length),
-            test_optimal=s.test_optimal.at[idx].set(optimal),
+            test_optimal=s.test_optimal.at[idx].set(optimal), test_solved=s.test_solved.at[idx].set(used & terminated),
             best_params=jax.tree.map(lambda new, old: jnp.where(better, new, old), params, s.best_params),
             best_return=jnp.where(better, ret, s.best_return),
             best_length=jnp.where(better, length, s.best_length),
@@ -340,12 +347,14 @@ class Trainer:
         n, nt = self.cfg.episodes, self.n_tests
         first = np.asarray(t.first_optimal_test)
         eto = [None if f == NEVER else int((f + 1) * self.cfg.test_every) for f in first]
+        solved = t.test_solved[:, :nt]
+        ets = [int((np.argmax(row) + 1) * self.cfg.test_every) if row.any() else None for row in solved]
         return {
             "train_return": t.train_return[:, :n], "train_length": t.train_length[:, :n],
             "test_return": t.test_return[:, :nt], "test_length": t.test_length[:, :nt],
-            "test_optimal": t.test_optimal[:, :nt],
+            "test_optimal": t.test_optimal[:, :nt], "test_solved": solved,
             "test_episode": (np.arange(nt) + 1) * self.cfg.test_every,
             "best_return": t.best_return, "best_length": t.best_length, "best_test": t.best_test,
             "best_params": t.best_params, "env_steps": t.env_steps,
-            "episodes_to_optimal": eto,
+            "episodes_to_optimal": eto, "episodes_to_solved": ets,
         }

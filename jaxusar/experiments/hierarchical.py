@@ -153,6 +153,7 @@ def run(cfg: ExperimentConfig, trials: int, out, force: bool = False, quiet: boo
     sub = b["sub_trainer"].results(sub_state)
     sub_wall = time.perf_counter() - t1
     eto_lanes, test_episode = sub.pop("episodes_to_optimal"), sub.pop("test_episode")
+    sub.pop("episodes_to_solved")
     sub = {**_per_task(sub, n_tasks, trials), "test_episode": test_episode}
     sub_eto = [[eto_lanes[k * trials + j] for j in range(trials)] for k in range(n_tasks)]
 
@@ -179,6 +180,7 @@ def run(cfg: ExperimentConfig, trials: int, out, force: bool = False, quiet: boo
                                           "max": [p["subpolicies_max"] for p in per_trial],
                                           "per_task": {t.name: sub_eto[k] for k, t in enumerate(tasks)}},
         "coordinator_episodes_to_optimal": co["episodes_to_optimal"],
+        "coordinator_episodes_to_solved": co["episodes_to_solved"],
         "coordinator_summary": summarize(co["episodes_to_optimal"]),
         "options": list(b["options"].names), "tasks": [t.name for t in tasks],
         "optimal_team_steps": b["optimal"], "optimal_slack": cfg.train.optimal_slack,

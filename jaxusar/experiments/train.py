@@ -50,10 +50,10 @@ def algorithm_module(name: str):
 def environment_info() -> dict:
     return {"jax": jax.__version__, "flax": flax.__version__, "optax": optax.__version__,
             "numpy": np.__version__, "python": platform.python_version(), "machine": platform.machine(),
-            "processor": _cpu_name(), "devices": [str(d) for d in jax.devices()]}
+            "processor": cpu_name(), "devices": [str(d) for d in jax.devices()]}
 
 
-def _cpu_name() -> str:
+def cpu_name() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -147,6 +147,7 @@ def run_flat(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = 
     eto = results["episodes_to_optimal"]
     metrics = {
         "algorithm": cfg.algo, "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
+        "episodes_to_solved": results["episodes_to_solved"],
         "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
         "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
         "env_steps_per_trial": results["env_steps"].tolist(), "wall_seconds": round(wall, 2),
