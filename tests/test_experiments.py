@@ -62,7 +62,8 @@ def test_train_hierarchical_end_to_end(tmp_path):
     s, c, t = (m["subpolicy_episodes_to_optimal"]["sum"][0], m["coordinator_episodes_to_optimal"][0],
                m["episodes_to_optimal"][0])
     assert t == (None if s is None or c is None else s + c)
-    for f in ("fig4_subpolicies.png", "coordinator.png", "team_episode.png", "curves.csv", "params/trial_0.msgpack"):
+    for f in ("fig4_subpolicies.png", "fig4_agent0_navigate-to-bottom-room.png", "fig4_triage-top-victim.png",
+              "coordinator.png", "team_episode.png", "curves.csv", "params/trial_0.msgpack"):
         assert (out / f).stat().st_size > 0, f
     stages = {r["stage"] for r in csv.DictReader(open(out / "curves.csv"))}
     assert stages == {"subpolicy", "coordinator"}

@@ -31,7 +31,7 @@ from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import training_figure
 from jaxusar.experiments.train import (
-    environment_info, prepare_out, print_progress, save_params, summarize, write_curves_csv,
+    environment_info, flat_metrics, prepare_out, print_progress, write_trial_files,
 )
 
 
@@ -66,17 +66,8 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
         results = trainer.results(state)
         wall = time.perf_counter() - start
         eto = results["episodes_to_optimal"]
-        metrics = {
-            "algorithm": cfg.algo, "options": k, "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
-            "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
-            "episodes_to_solved": results["episodes_to_solved"],
-            "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
-            "env_steps_per_trial": results["env_steps"].tolist(), "wall_seconds": round(wall, 2),
-            "concurrent_runs": workers,
-            "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
-        }
-        write_curves_csv(k_outs[k] / "curves.csv", results)
-        save_params(k_outs[k] / "params", results["best_params"])
+        metrics = {**flat_metrics(cfg, trials, results, optimal, wall, options=k), "concurrent_runs": workers}
+        write_trial_files(k_outs[k], results)
         (k_outs[k] / "metrics.json").write_text(json.dumps(metrics, indent=2))
         if not quiet:
             print(f"[doc K={k}] episodes_to_optimal per trial: {eto}; best {metrics['best']}, "

@@ -7,7 +7,8 @@ Output folder::
                           them), the two parts, the per-task counts, the max over tasks (they train
                           concurrently), wall seconds per stage, config, versions
     curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal
-    fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials
+    fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials; and
+    fig4_<task>.png       the same for each sub-policy alone
     coordinator.png       the coordinator's train and test curves
     team_episode.png      the best trial's greedy team episode, as a strip of frames
     params/               best sub-policy and coordinator params per trial
@@ -116,7 +117,7 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
     n = len(names)
     fig, axes = plt.subplots(n, 2, figsize=(11, 2.3 * n), squeeze=False)
     for k, name in enumerate(names):
-        tl, tel = results["train_length"][k], results["test_length"][k]
+        tl, tel = results["train_length"][k], results["test_length"][k]  # [trials, episodes]
         band(axes[k, 0], np.arange(1, tl.shape[1] + 1), smooth(tl, 10))
         band(axes[k, 1], results["test_episode"], tel)
         for ax, what in zip(axes[k], ("train steps (moving avg 10)", "greedy test steps")):
@@ -221,7 +222,13 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     # the optimum of a fixed-start task; random-start tasks have one per start (not drawn)
     opt = [int(b["task_params"].dist[k, t.test_starts[0, 0], t.test_starts[0, 1], t.test_starts[0, 2]])
            if len(t.test_starts) == 1 else -1 for k, t in enumerate(tasks)]
-    subpolicy_figure(sub, [t.name for t in tasks], out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
+    names = [t.name for t in tasks]
+    subpolicy_figure(sub, names, out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
+    for k, name in enumerate(names):  # and one figure per sub-policy, as the paper's Fig. 4 panels
+        one = {**{n: v[k:k + 1] for n, v in sub.items() if n in ("train_length", "test_length")},
+               "test_episode": sub["test_episode"]}
+        subpolicy_figure(one, [name], out / f"fig4_{name.replace(':', '_').lower()}.png", env.horizon,
+                         np.asarray(opt[k:k + 1]))
     training_figure(co, out / "coordinator.png", "coordinator (SMDP DQN over joint options)", horizon=env.horizon,
                     optimal_steps=b["optimal"], smooth_window=5)
     # the best trial: optimal soonest, else the best team test

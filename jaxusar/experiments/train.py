@@ -133,6 +133,25 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
     return runner.run(cfg, trials, out, force=force, quiet=quiet, **extra)
 
 
+def flat_metrics(cfg: ExperimentConfig, trials: int, results: dict, optimal: int, wall: float, **extra) -> dict:
+    """metrics.json of one Trainer's results (``extra`` keys go after ``algorithm``)."""
+    eto = results["episodes_to_optimal"]
+    return {
+        "algorithm": cfg.algo, **extra, "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
+        "episodes_to_solved": results["episodes_to_solved"],
+        "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
+        "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
+        "env_steps_per_trial": results["env_steps"].tolist(), "wall_seconds": round(wall, 2),
+        "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
+    }
+
+
+def write_trial_files(out: Path, results: dict) -> None:
+    """curves.csv and params/ of one Trainer's results."""
+    write_curves_csv(out / "curves.csv", results)
+    save_params(out / "params", results["best_params"])
+
+
 def run_flat(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False) -> dict:
     """Train ``trials`` seeds of a flat algorithm in one vmapped call and write the results folder."""
     if trials < 1:
@@ -145,16 +164,8 @@ def run_flat(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = 
     results = trainer.results(state)
     wall = time.perf_counter() - start
     eto = results["episodes_to_optimal"]
-    metrics = {
-        "algorithm": cfg.algo, "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
-        "episodes_to_solved": results["episodes_to_solved"],
-        "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
-        "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
-        "env_steps_per_trial": results["env_steps"].tolist(), "wall_seconds": round(wall, 2),
-        "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
-    }
-    write_curves_csv(out / "curves.csv", results)
-    save_params(out / "params", results["best_params"])
+    metrics = flat_metrics(cfg, trials, results, optimal, wall)
+    write_trial_files(out, results)
     training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=env.horizon,
                     optimal_steps=optimal)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
