@@ -194,6 +194,17 @@ def test_trainer_rejects_tests_closer_than_updates():
         Trainer(env, iql.make_learner(env, DQNConfig()), cfg, learning_starts=0, train_every=8, optimal_steps=2)
 
 
+def test_trainer_detects_more_tests_than_snapshot_slots():
+    """An overstated min_episode_steps means too few slots: an error, never a silently lost test."""
+    env = tiny_env()
+    cfg = config.load(sets=["train.episodes=40", "train.test_every=1", "train.chunk_steps=400", "dqn.train_every=1",
+                            "dqn.learning_starts=1000", "dqn.hidden=[8]"])
+    tr = Trainer(env, iql.make_learner(env, cfg.dqn), cfg.train, learning_starts=1000, train_every=1,
+                 optimal_steps=2, min_episode_steps=20)  # random episodes are far shorter than 20 steps
+    with pytest.raises(RuntimeError, match="snapshot slots"):
+        tr.train(jax.random.split(jax.random.PRNGKey(0), 1))
+
+
 def test_iql_learners_share_nothing():
     env = tiny_env()
     learner = iql.make_learner(env, DQNConfig(hidden=(8,), buffer_capacity=64))

@@ -86,6 +86,7 @@ class TrainState:
     trials: TrialState        # leading trials axis
     step: jax.Array           # env steps per trial so far (equal across trials)
     chunk: jax.Array          # chunks run so far
+    snapshots_used: jax.Array  # most test snapshots any trial took in the last chunk (<= n_slots)
 
 
 def _steps_of(info) -> jax.Array:
@@ -129,8 +130,8 @@ class Trainer:
     def init(self, keys: jax.Array, env_params=None) -> TrainState:
         """Fresh state for ``len(keys)`` trials; ``env_params`` (leading trials axis) for a
         parameterised env (``reset(key, params)``, ``step(key, state, action, params)``)."""
-        return TrainState(trials=self._init(keys, env_params),
-                          step=jnp.zeros((), jnp.int32), chunk=jnp.zeros((), jnp.int32))
+        return TrainState(trials=self._init(keys, env_params), step=jnp.zeros((), jnp.int32),
+                          chunk=jnp.zeros((), jnp.int32), snapshots_used=jnp.zeros((), jnp.int32))
 
     # -- env calls, with or without per-trial params --------------------------------------------
     def _reset(self, key, env_params):
@@ -304,8 +305,9 @@ class Trainer:
             return (trials.replace(learner=learner), step), None
 
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
+        used = jnp.max(trials.snaps.count)
         trials = self._evaluate(trials)
-        return TrainState(trials=trials, step=step, chunk=state.chunk + 1)
+        return TrainState(trials=trials, step=step, chunk=state.chunk + 1, snapshots_used=used)
 
     # -- host loop ------------------------------------------------------------------------------
     def max_chunks(self) -> int:
@@ -317,8 +319,9 @@ class Trainer:
 
     def run_chunk(self, state: TrainState) -> TrainState:
         state = self._chunk(state)
-        overflow = np.asarray(state.trials.snaps.count).max()  # reset by _evaluate; stays 0 unless misuse
-        assert overflow == 0
+        if int(state.snapshots_used) > self.n_slots:  # only if min_episode_steps overstated the shortest episode
+            raise RuntimeError(f"{int(state.snapshots_used)} greedy tests fell in one chunk but only {self.n_slots} "
+                               "snapshot slots exist: min_episode_steps is larger than the shortest episode")
         return state
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
