@@ -120,14 +120,18 @@ class MacroEnv:
             acts.append(jnp.where(active[i], a, TRIAGE))
         return jnp.stack(acts).astype(jnp.int32)
 
+    def any_terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
+        """bool: some active agent's option has reached its termination condition in ``s``."""
+        triaged = jnp.broadcast_to(s.triaged, (self.n_agents,) + s.triaged.shape)
+        done = jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
+        return jnp.any(active & done)
+
     def step(self, key, s: EnvState, action: jax.Array, p: CoordinatorParams):
         options = jnp.asarray(self.joint)[action[0]]
         obs = self.observe(s)
         avail = self.available(*self.decode(obs))
         active = avail.any(-1)  # non-idle agents
         valid = self.valid_joint(obs)[action[0]]
-        options_done = lambda st: jnp.any(active & jax.vmap(self.options.terminated)(
-            options, self.env.graph.region_of(st.agent_pos), jnp.broadcast_to(st.triaged, (self.n_agents,) + st.triaged.shape)))
 
         def body(c):
             st, ret, disc, k, done = c
@@ -136,7 +140,7 @@ class MacroEnv:
 
         def cond(c):
             st, _, _, k, done = c
-            return ~done & ~options_done(st) & (k < self.option_timeout)
+            return ~done & ~self.any_terminated(st, options, active) & (k < self.option_timeout)
 
         zero = jnp.zeros((), jnp.float32)
         run = lambda st: jax.lax.while_loop(cond, body, (st, zero, zero, jnp.zeros((), jnp.int32),

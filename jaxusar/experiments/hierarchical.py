@@ -80,8 +80,7 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     decide = jax.jit(lambda obs: learner.greedy_act(coord_params, obs, None)[0][0])
     info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_joint(obs)))
     act = jax.jit(lambda s, o, a: macro.primitive_actions(s, o, a, p))
-    finished = jax.jit(lambda s, o, a: jnp.any(a & jax.vmap(macro.options.terminated)(
-        o, macro.env.graph.region_of(s.agent_pos), jnp.broadcast_to(s.triaged, (macro.n_agents,) + s.triaged.shape))))
+    finished = jax.jit(macro.any_terminated)
     step = jax.jit(macro.env.step)
     obs, s = macro.reset(None)
     states, rewards, decisions = [s], [], []
