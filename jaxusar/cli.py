@@ -128,9 +128,24 @@ def add_train(subparsers) -> None:
                    help="override one setting, e.g. --set train.episodes=500 (repeatable)")
     p.add_argument("--options", default=None, metavar="K[,K...]",
                    help="doc (option-critic) only: numbers of options per agent, one run each (paper: 2,4,8)")
-    p.add_argument("--force", action="store_true", help="overwrite a finished run in DIR")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_run_arguments(p)
     p.set_defaults(run=train)
+
+
+def add_run_arguments(p) -> None:
+    """What every training command takes: overwriting, checkpoints, progress."""
+    p.add_argument("--force", action="store_true",
+                   help="overwrite a finished run in DIR, or start an interrupted one over (default: resume it)")
+    p.add_argument("--checkpoint-every", type=float, default=60.0, metavar="SECONDS",
+                   help="seconds between checkpoints of the training state (default 60; 0: after every chunk)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def check_run_arguments(args: argparse.Namespace) -> None:
+    if args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0 seconds, got {args.checkpoint_every:g}")
+    if args.trials < 1:
+        raise UsageError(f"--trials must be >= 1, got {args.trials}")
 
 
 def parse_options(text: str | None) -> tuple[int, ...] | None:
@@ -147,13 +162,13 @@ def parse_options(text: str | None) -> tuple[int, ...] | None:
 
 def train(args: argparse.Namespace) -> int:
     from jaxusar import config
+    from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import train as experiment
 
+    check_run_arguments(args)
     try:
         module = experiment.algorithm_module(args.algo)
-        if args.trials < 1:
-            raise config.ConfigError(f"--trials must be >= 1, got {args.trials}")
         cfg = config.load(args.config, args.sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
         if cfg.algo != args.algo:
             raise config.ConfigError(f"the config is for algo {cfg.algo!r} but the command trains {args.algo!r}")
@@ -163,14 +178,60 @@ def train(args: argparse.Namespace) -> int:
         if options is not None and args.algo != "doc":
             raise UsageError("--options applies to doc (option-critic) only")
         extra = {} if options is None else {"options": options}
-        experiment.run(cfg, args.trials, out, force=True, quiet=args.quiet, **extra)
-    except (config.ConfigError, LayoutError, FileExistsError) as err:
+        experiment.run(cfg, args.trials, out, force=args.force, quiet=args.quiet,
+                       checkpoint_every=args.checkpoint_every, **extra)
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
+        raise UsageError(str(err)) from None
+    return 0
+
+
+# -- reproduce ----------------------------------------------------------------------------------
+def add_reproduce(subparsers) -> None:
+    p = subparsers.add_parser(
+        "reproduce", help="the paper's Table II and Figs. 4-6: every method, N trials each, in one command",
+        description="Train the hierarchical method, option-critic (2, 4, 8 options) and IQL, N trials each in one "
+                    "vmapped call per trainer, side by side; write DIR/results.json, DIR/table2.md, the figures "
+                    "and one folder per algorithm. Interrupted runs resume from their checkpoints.")
+    p.add_argument("--trials", type=int, default=8, help="independent seeds per algorithm (default 8, as the paper)")
+    p.add_argument("--out", type=Path, default=Path("results/two_rooms"), metavar="DIR",
+                   help="results folder (default results/two_rooms)")
+    p.add_argument("--quick", action="store_true",
+                   help="reduced budgets: the same pipeline in under two minutes on a 2-core CPU, for a first look")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
+                   help="override a setting of every algorithm (env.horizon=200) or of one "
+                        "(iql.train.episodes=100); repeatable")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="trainers run side by side (default: one per CPU core)")
+    p.add_argument("--distributed", action="store_true",
+                   help="several processes/hosts: call jax.distributed.initialize() (its settings from the "
+                        "environment, see README) and split the trials across the processes")
+    add_run_arguments(p)
+    p.set_defaults(run=reproduce)
+
+
+def reproduce(args: argparse.Namespace) -> int:
+    from jaxusar import config
+    from jaxusar.core.checkpoint import CheckpointError
+    from jaxusar.envs import LayoutError
+    from jaxusar.experiments import reproduce as experiment
+
+    check_run_arguments(args)
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()
+    try:
+        experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
+                       checkpoint_every=args.checkpoint_every, workers=args.workers)
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
         raise UsageError(str(err)) from None
     return 0
 
 
 # -- entry point ----------------------------------------------------------------------------------
-COMMANDS = (add_demo, add_train)
+COMMANDS = (add_demo, add_train, add_reproduce)
 
 
 def build_parser() -> argparse.ArgumentParser:

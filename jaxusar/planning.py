@@ -15,7 +15,6 @@ victims as obstacles) to enter each region and to triage each victim; the sub-po
 from __future__ import annotations
 
 import itertools
-from functools import lru_cache
 
 import jax
 import jax.numpy as jnp
@@ -67,8 +66,19 @@ def _joint_actions(n_agents: int) -> np.ndarray:
     return np.asarray(list(itertools.product(range(N_ACTIONS), repeat=n_agents)), np.int32).reshape(-1, n_agents)
 
 
-@lru_cache(maxsize=32)
 def _expander(env: USAREnv):
+    """The jitted successor function of ``env``'s map. Cached by what the step rules read (solid cells,
+    victims, agents), not by the env object, so every ``make`` of one map shares one compile."""
+    rules = (env._solid.tobytes(), env._solid.shape, env._victim_at.tobytes(), env.n_agents)
+    if rules not in _EXPANDERS:
+        _EXPANDERS[rules] = _make_expander(env)
+    return _EXPANDERS[rules]
+
+
+_EXPANDERS: dict = {}
+
+
+def _make_expander(env: USAREnv):
     joint = jnp.asarray(_joint_actions(env.n_agents))
 
     def successors(pos, dirs, triaged):

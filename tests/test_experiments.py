@@ -56,7 +56,7 @@ def test_train_hierarchical_end_to_end(tmp_path):
     assert m["options"] == ["NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-BOTTOM-ROOM", "TRIAGE-TOP-VICTIM",
                             "TRIAGE-BOTTOM-VICTIM"]
     assert len(m["tasks"]) == 6 and set(m["subpolicy_episodes_to_optimal"]["per_task"]) == set(m["tasks"])
-    for k in ("episodes_to_optimal", "coordinator_episodes_to_optimal", "wall_seconds_by_stage"):
+    for k in ("episodes_to_optimal", "coordinator_episodes_to_optimal", "seconds", "wall_seconds"):
         assert k in m
     # the total is the sub-policy sum plus the coordinator's count, when both exist
     s, c, t = (m["subpolicy_episodes_to_optimal"]["sum"][0], m["coordinator_episodes_to_optimal"][0],

@@ -6,13 +6,17 @@ Shape of a chunk (one jitted call, all trials at once)::
         scan over train_every steps:
             vmap over trials: act, env.step, observe, episode bookkeeping, auto-reset
         if any trial finished a test-due episode: snapshot its policy params   (lax.cond)
+        if some trial's snapshot slots are full: evaluate them                  (lax.cond)
         if step >= learning_starts: vmap over trials: learner.update           (lax.cond)
-    for each snapshot slot some trial used (lax.cond): vmap over trials: greedy test episode
+    evaluate the snapshots left                                                (lax.cond per slot)
+
+    evaluate = for each snapshot slot some trial used: vmap over trials: greedy test episode
         (a while loop: stops when every lane is done); record it, keep the best params
 
-The conditions of both ``lax.cond`` are scalars equal across trials, so vmap never turns them into
-selects that run both branches (DESIGN.md). Greedy tests are evaluated from parameter snapshots
-once per chunk in one batched call (a per-trial test inside the step would run on every step).
+The conditions of every ``lax.cond`` are scalars equal across trials, so vmap never turns them into
+selects that run both branches (DESIGN.md). Greedy tests are evaluated from parameter snapshots in
+batched calls, when ``n_slots`` snapshots have piled up and at the chunk's end (a per-trial test
+inside the step would run on every step); the few slots bound the snapshots' memory at any chunk size.
 All randomness of a chunk is drawn up front from ``fold_in(trial_key, chunk_index)``, so a trial's
 numbers do not depend on which other trials run beside it.
 
@@ -43,6 +47,7 @@ from jaxusar.config import ConfigError, TrainConfig
 
 NO_TEST = -1
 NEVER = np.iinfo(np.int32).max
+MAX_SNAPSHOT_SLOTS = 8  # policy snapshots awaiting their greedy test, per trial
 
 
 @struct.dataclass
@@ -86,7 +91,6 @@ class TrainState:
     trials: TrialState        # leading trials axis
     step: jax.Array           # env steps per trial so far (equal across trials)
     chunk: jax.Array          # chunks run so far
-    snapshots_used: jax.Array  # most test snapshots any trial took in the last chunk (<= n_slots)
 
 
 def _steps_of(info) -> jax.Array:
@@ -103,8 +107,8 @@ class Trainer:
       learner: see ``jaxusar.core.learners``.
       cfg: TrainConfig. learning_starts, train_every: from the learner's DQNConfig.
       optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
-      min_episode_steps: fewest env steps any episode can take (sizes the per-chunk test snapshots);
-        defaults to min(optimal_steps, horizon).
+      min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
+        updates); defaults to min(optimal_steps, horizon).
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
@@ -122,7 +126,7 @@ class Trainer:
         self.iters = max(1, cfg.chunk_steps // train_every)
         self.chunk_steps = self.iters * train_every
         self.n_tests = cfg.episodes // cfg.test_every
-        self.n_slots = min(self.iters, math.ceil(self.chunk_steps / (cfg.test_every * self.min_episode_steps)) + 1)
+        self.n_slots = min(self.iters, MAX_SNAPSHOT_SLOTS)
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
         self._init = jax.jit(jax.vmap(self._init_trial))
 
@@ -131,7 +135,7 @@ class Trainer:
         """Fresh state for ``len(keys)`` trials; ``env_params`` (leading trials axis) for a
         parameterised env (``reset(key, params)``, ``step(key, state, action, params)``)."""
         return TrainState(trials=self._init(keys, env_params), step=jnp.zeros((), jnp.int32),
-                          chunk=jnp.zeros((), jnp.int32), snapshots_used=jnp.zeros((), jnp.int32))
+                          chunk=jnp.zeros((), jnp.int32))
 
     # -- env calls, with or without per-trial params --------------------------------------------
     def _reset(self, key, env_params):
@@ -300,14 +304,39 @@ class Trainer:
             (trials, step), _ = jax.lax.scan(inner, (trials, step), act)
             trials = jax.lax.cond(jnp.any(trials.pending_test != NO_TEST),
                                   jax.vmap(self._snapshot), lambda t: t, trials)
+            # one snapshot per trial per iteration at most (checked in __init__), so none is ever lost
+            trials = jax.lax.cond(jnp.max(trials.snaps.count) >= self.n_slots, self._evaluate, lambda t: t, trials)
             learner = jax.lax.cond(step >= self.learning_starts, jax.vmap(self.learner.update),
                                    lambda l, _: l, trials.learner, upd)
             return (trials.replace(learner=learner), step), None
 
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
-        used = jnp.max(trials.snaps.count)
-        trials = self._evaluate(trials)
-        return TrainState(trials=trials, step=step, chunk=state.chunk + 1, snapshots_used=used)
+        return TrainState(trials=self._evaluate(trials), step=step, chunk=state.chunk + 1)
+
+    # -- placement and compilation ---------------------------------------------------------------
+    def place(self, state: TrainState, devices=None) -> TrainState:
+        """Shard the trials axis of ``state`` over ``devices`` (default: every local device) with
+        ``jax.sharding``; the step counters are replicated. Every per-trial computation is local to its
+        shard; only the scalar conditions (any test due? how many snapshot slots used?) are reduced
+        across devices, so the results equal a one-device run. ``len(devices)`` must divide the trials."""
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        devices = list(jax.local_devices() if devices is None else devices)
+        n_trials = jax.tree.leaves(state.trials)[0].shape[0]
+        if n_trials % len(devices):
+            raise ConfigError(f"{n_trials} trials cannot be split evenly over {len(devices)} devices")
+        mesh = Mesh(np.asarray(devices), ("trials",))
+        by_trial, replicated = NamedSharding(mesh, PartitionSpec("trials")), NamedSharding(mesh, PartitionSpec())
+        return TrainState(trials=jax.device_put(state.trials, by_trial),
+                          step=jax.device_put(state.step, replicated), chunk=jax.device_put(state.chunk, replicated))
+
+    def compile(self, state: TrainState) -> float:
+        """Compile the chunk ahead of time for ``state``'s shapes and placement (the output keeps the
+        input's sharding, so every chunk reuses this one executable); returns the seconds it took."""
+        start = time.perf_counter()
+        shardings = jax.tree.map(lambda x: x.sharding, state)
+        self._chunk = jax.jit(self._run_chunk, donate_argnums=0, out_shardings=shardings).lower(state).compile()
+        return time.perf_counter() - start
 
     # -- host loop ------------------------------------------------------------------------------
     def max_chunks(self) -> int:
@@ -318,17 +347,13 @@ class Trainer:
         return bool(np.min(np.asarray(state.trials.episodes)) >= self.cfg.episodes)
 
     def run_chunk(self, state: TrainState) -> TrainState:
-        state = self._chunk(state)
-        if int(state.snapshots_used) > self.n_slots:  # only if min_episode_steps overstated the shortest episode
-            raise RuntimeError(f"{int(state.snapshots_used)} greedy tests fell in one chunk but only {self.n_slots} "
-                               "snapshot slots exist: min_episode_steps is larger than the shortest episode")
-        return state
+        return self._chunk(state)
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
               on_chunk: Callable | None = None, env_params=None) -> TrainState:
         """Run chunks until every trial has ``episodes`` episodes. ``progress(info)`` after each chunk."""
         state = self.init(keys, env_params) if state is None else state
-        start = time.perf_counter()
+        start, frac0 = time.perf_counter(), self._fraction_done(state)
         while not self.done(state):
             if int(state.chunk) >= self.max_chunks():
                 raise RuntimeError("episode budget not reached within the step bound; this is a bug")
@@ -337,12 +362,15 @@ class Trainer:
                 on_chunk(state)
             if progress is not None:
                 eps = np.minimum(np.asarray(state.trials.episodes), self.cfg.episodes)
-                elapsed = time.perf_counter() - start
-                frac = eps.min() / self.cfg.episodes
+                elapsed, frac = time.perf_counter() - start, self._fraction_done(state)
                 progress({"chunk": int(state.chunk), "episodes_min": int(eps.min()), "episodes_mean": float(eps.mean()),
                           "episodes_total": self.cfg.episodes, "elapsed": elapsed,
-                          "eta": elapsed * (1 - frac) / max(frac, 1e-9), "step": int(state.step)})
+                          "eta": elapsed * (1 - frac) / max(frac - frac0, 1e-9), "step": int(state.step)})
         return state
+
+    def _fraction_done(self, state: TrainState) -> float:
+        """How far the slowest trial is through its episodes (a resumed run starts part-way)."""
+        return float(np.minimum(np.asarray(state.trials.episodes), self.cfg.episodes).min() / self.cfg.episodes)
 
     def results(self, state: TrainState) -> dict:
         """Per-trial numpy results (leading trials axis) plus episodes_to_optimal as a list."""

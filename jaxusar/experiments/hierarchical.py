@@ -5,7 +5,7 @@ Output folder::
 
     metrics.json          episodes_to_optimal per trial (= sub-policy sum + coordinator, as Table II counts
                           them), the two parts, the per-task counts, the max over tasks (they train
-                          concurrently), wall seconds per stage, config, versions
+                          concurrently), compile and run seconds per stage, config, versions
     curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal
     fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials; and
     fig4_<task>.png       the same for each sub-policy alone
@@ -17,8 +17,6 @@ Output folder::
 from __future__ import annotations
 
 import csv
-import json
-import time
 from pathlib import Path
 
 import jax
@@ -30,15 +28,11 @@ from jaxusar import envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import options_from_graph
-from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
+from jaxusar.config import ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import band, smooth, training_figure
-from jaxusar.experiments.train import environment_info, prepare_out, print_progress, summarize
-
-
-def _per_task(x, n_tasks: int, trials: int):
-    """Lanes are ordered [task, trial]: reshape a leading lanes axis to [task, trial, ...]."""
-    return jax.tree.map(lambda a: np.asarray(a).reshape(n_tasks, trials, *np.shape(a)[1:]), x)
+from jaxusar.experiments.runner import Stage
+from jaxusar.experiments.train import environment_info, stage_seconds, summarize
 
 
 def build(cfg: ExperimentConfig):
@@ -135,68 +129,71 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
     plt.close(fig)
 
 
-def run(cfg: ExperimentConfig, trials: int, out, force: bool = False, quiet: bool = False) -> dict:
-    if trials < 1:
-        raise ConfigError(f"--trials must be >= 1, got {trials}")
-    out = prepare_out(out, force)
-    t0 = time.perf_counter()
-    b = build(cfg)
-    tasks, n_tasks = b["tasks"], len(b["tasks"])
-    trial_keys = jax.random.split(jax.random.PRNGKey(cfg.seed), trials)
-    lane_keys = jnp.concatenate([jax.vmap(lambda k, t=t: jax.random.fold_in(k, t))(trial_keys) for t in range(n_tasks)])
-    lane_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), trials, axis=0), b["task_params"])
-    setup = time.perf_counter() - t0
+class Experiment:
+    """Two stages in one chain: the sub-policies (lanes ordered [trial, task], one vmapped call), then
+    the coordinator (one lane per trial) over each trial's best sub-policy params."""
 
-    t1 = time.perf_counter()
-    sub_state = b["sub_trainer"].train(lane_keys, env_params=lane_params,
-                                       progress=None if quiet else print_progress("sub-policies"))
-    sub = b["sub_trainer"].results(sub_state)
-    sub_wall = time.perf_counter() - t1
-    eto_lanes, test_episode = sub.pop("episodes_to_optimal"), sub.pop("test_episode")
-    sub.pop("episodes_to_solved")
-    sub = {**_per_task(sub, n_tasks, trials), "test_episode": test_episode}
-    sub_eto = [[eto_lanes[k * trials + j] for j in range(trials)] for k in range(n_tasks)]
+    def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
+        self.cfg, self.trials = cfg, len(keys)
+        self.b = b = build(cfg)
+        n_tasks = len(b["tasks"])
+        lane_keys = jax.vmap(lambda k: jax.vmap(lambda t: jax.random.fold_in(k, t))(jnp.arange(n_tasks)))(keys)
+        lane_params = jax.tree.map(lambda x: jnp.tile(jnp.asarray(x), (self.trials,) + (1,) * (x.ndim - 1)),
+                                   b["task_params"])
+        self.chains = [[
+            Stage("hierarchical/subpolicies", b["sub_trainer"], lane_keys.reshape(-1, *keys.shape[1:]), lane_params),
+            Stage("hierarchical/coordinator", b["coord_trainer"], keys,
+                  lambda sub: coord.CoordinatorParams(subpolicy=self._by_trial(sub.results["best_params"]))),
+        ]]
 
-    t2 = time.perf_counter()
-    best_sub = jax.tree.map(lambda x: jnp.swapaxes(jnp.asarray(x), 0, 1), sub["best_params"])  # [trial, task, ...]
-    c_state = b["coord_trainer"].train(trial_keys, env_params=coord.CoordinatorParams(subpolicy=best_sub),
-                                       progress=None if quiet else print_progress("coordinator"))
-    co = b["coord_trainer"].results(c_state)
-    coord_wall = time.perf_counter() - t2
+    def _by_trial(self, lanes):
+        """A leading [trial * task] lanes axis as [trial, task]."""
+        n_tasks = len(self.b["tasks"])
+        return jax.tree.map(lambda a: jnp.asarray(a).reshape(-1, n_tasks, *np.shape(a)[1:]), lanes)
 
-    per_trial = []
-    for j in range(trials):
-        parts = [sub_eto[k][j] for k in range(n_tasks)]
-        sub_sum = None if None in parts else int(sum(parts))
-        sub_max = None if None in parts else int(max(parts))
-        c_eto = co["episodes_to_optimal"][j]
-        total = None if sub_sum is None or c_eto is None else sub_sum + c_eto
-        per_trial.append({"subpolicies_sum": sub_sum, "subpolicies_max": sub_max, "coordinator": c_eto, "total": total})
-    eto = [p["total"] for p in per_trial]
-    wall = time.perf_counter() - t0
-    metrics = {
-        "algorithm": "hierarchical", "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
-        "subpolicy_episodes_to_optimal": {"sum": [p["subpolicies_sum"] for p in per_trial],
-                                          "max": [p["subpolicies_max"] for p in per_trial],
-                                          "per_task": {t.name: sub_eto[k] for k, t in enumerate(tasks)}},
-        "coordinator_episodes_to_optimal": co["episodes_to_optimal"],
-        "coordinator_episodes_to_solved": co["episodes_to_solved"],
-        "coordinator_summary": summarize(co["episodes_to_optimal"]),
-        "options": list(b["options"].names), "tasks": [t.name for t in tasks],
-        "optimal_team_steps": b["optimal"], "optimal_slack": cfg.train.optimal_slack,
-        "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
-        "wall_seconds": round(wall, 2),
-        "wall_seconds_by_stage": {"setup_and_planning": round(setup, 2), "subpolicies": round(sub_wall, 2),
-                                  "coordinator": round(coord_wall, 2)},
-        "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
-    }
-    write_outputs(out, b, sub, co, best_sub, metrics)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    if not quiet:
-        print(f"[hierarchical] episodes_to_optimal per trial (sub-policy sum + coordinator): {eto}; "
-              f"best {metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal; "
-              f"coordinator {co['episodes_to_optimal']}; {wall:.1f}s; wrote {out}")
-    return {"metrics": metrics, "subpolicies": sub, "coordinator": co}
+    def finish(self, out: Path, outcomes: dict, quiet: bool = False) -> dict:
+        b, cfg, tasks = self.b, self.cfg, self.b["tasks"]
+        n_tasks = len(tasks)
+        sub_o, co_o = outcomes["hierarchical/subpolicies"], outcomes["hierarchical/coordinator"]
+        sub, co = dict(sub_o.results), co_o.results
+        trials = co["train_return"].shape[0]
+        eto_lanes, test_episode = sub.pop("episodes_to_optimal"), sub.pop("test_episode")
+        sub.pop("episodes_to_solved")
+        best_sub = self._by_trial(sub["best_params"])  # [trial, task, ...]
+        sub = {**jax.tree.map(lambda a: np.swapaxes(np.asarray(self._by_trial(a)), 0, 1), sub),
+               "test_episode": test_episode}  # [task, trial, ...]
+        sub_eto = [[eto_lanes[j * n_tasks + k] for j in range(trials)] for k in range(n_tasks)]
+
+        per_trial = []
+        for j in range(trials):
+            parts = [sub_eto[k][j] for k in range(n_tasks)]
+            sub_sum = None if None in parts else int(sum(parts))
+            sub_max = None if None in parts else int(max(parts))
+            c_eto = co["episodes_to_optimal"][j]
+            total = None if sub_sum is None or c_eto is None else sub_sum + c_eto
+            per_trial.append({"subpolicies_sum": sub_sum, "subpolicies_max": sub_max, "coordinator": c_eto,
+                              "total": total})
+        eto = [p["total"] for p in per_trial]
+        metrics = {
+            "algorithm": "hierarchical", "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
+            "subpolicy_episodes_to_optimal": {"sum": [p["subpolicies_sum"] for p in per_trial],
+                                              "max": [p["subpolicies_max"] for p in per_trial],
+                                              "per_task": {t.name: sub_eto[k] for k, t in enumerate(tasks)}},
+            "coordinator_episodes_to_optimal": co["episodes_to_optimal"],
+            "coordinator_episodes_to_solved": co["episodes_to_solved"],
+            "coordinator_summary": summarize(co["episodes_to_optimal"]),
+            "options": list(b["options"].names), "tasks": [t.name for t in tasks],
+            "optimal_team_steps": b["optimal"], "optimal_slack": cfg.train.optimal_slack,
+            "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
+            "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
+            "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
+        }
+        write_outputs(out, b, sub, co, best_sub, metrics)
+        if not quiet:
+            print(f"[hierarchical] episodes_to_optimal per trial (sub-policy sum + coordinator): {eto}; "
+                  f"best {metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal; "
+                  f"coordinator {co['episodes_to_optimal']}", flush=True)
+        return metrics
 
 
 def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict) -> None:

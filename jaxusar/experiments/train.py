@@ -1,12 +1,19 @@
 """Run one algorithm's N trials and write its results folder (side effects live here, not in core).
 
-Output folder::
+An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage``: the trainers to run)
+and ``finish(out, outcomes, quiet) -> metrics`` (writes everything but metrics.json). A flat learner
+(IQL, or any ``jaxusar/algos/<name>.py`` without an experiment file) gets ``FlatExperiment``; the
+hierarchical method and option-critic have ``Experiment`` classes in ``jaxusar/experiments/<algo>.py``.
+``run`` drives one experiment (``jaxusar train``); ``jaxusar.experiments.reproduce`` drives several.
+
+Output folder of a flat learner::
 
     metrics.json        algorithm, trials, episodes_to_optimal (list over trials, null = never),
                         summary statistics, wall_seconds (compile included), resolved config, versions
     curves.csv          trial, kind (train|test), episode, return, steps, optimal
     params/trial_K.msgpack   best test params of trial K (flax.serialization)
     curves.png          train and test steps and rewards vs episodes, band over trials (paper Fig. 6 style)
+    checkpoints/        while running: the trainers' states (removed when the run has finished)
 """
 
 from __future__ import annotations
@@ -14,7 +21,9 @@ from __future__ import annotations
 import csv
 import importlib
 import json
+import os
 import platform
+import shutil
 import time
 from pathlib import Path
 from typing import Callable
@@ -28,6 +37,8 @@ from flax import serialization
 from jaxusar import envs, planning
 from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
+from jaxusar.experiments.runner import Outcome, Runner, Stage, gather
+from jaxusar.experiments.stats import summarize
 from jaxusar.experiments.plots import training_figure
 
 
@@ -63,17 +74,6 @@ def cpu_name() -> str:
     return platform.processor()
 
 
-def summarize(episodes_to_optimal: list) -> dict:
-    """best, median (nulls count as never: median is null if half or more never got there), fraction."""
-    reached = sorted(e for e in episodes_to_optimal if e is not None)
-    n = len(episodes_to_optimal)
-    padded = reached + [np.inf] * (n - len(reached))
-    median = float(np.median(padded)) if n else None
-    return {"best": reached[0] if reached else None,
-            "median": None if median is None or not np.isfinite(median) else median,
-            "fraction_optimal": len(reached) / n if n else 0.0}
-
-
 def print_progress(name: str) -> Callable[[dict], None]:
     def show(p):
         print(f"[{name}] chunk {p['chunk']}: episodes {p['episodes_min']}/{p['episodes_total']} "
@@ -89,6 +89,17 @@ def build(cfg: ExperimentConfig):
     trainer = Trainer(env, learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
                       train_every=cfg.dqn.train_every, optimal_steps=optimal)
     return env, optimal, learner, trainer
+
+
+def trial_keys(seed: int, trials: int) -> jax.Array:
+    """One PRNG key per trial; with several processes (jax.distributed), this process's contiguous share."""
+    if trials < 1:
+        raise ConfigError(f"--trials must be >= 1, got {trials}")
+    n, i = jax.process_count(), jax.process_index()
+    if trials % n:
+        raise ConfigError(f"--trials {trials} cannot be split evenly over {n} processes")
+    per = trials // n
+    return jax.random.split(jax.random.PRNGKey(seed), trials)[i * per:(i + 1) * per]
 
 
 def write_curves_csv(path: Path, results: dict) -> None:
@@ -111,37 +122,35 @@ def save_params(folder: Path, best_params) -> None:
         (folder / f"trial_{k}.msgpack").write_bytes(serialization.to_bytes(trial))
 
 
-def prepare_out(out: str | Path, force: bool) -> Path:
+def prepare_out(out: str | Path, force: bool, marker: str = "metrics.json") -> Path:
+    """Create ``out``; refuse if a finished run (its ``marker`` file) is there, unless ``force``, which
+    also drops the checkpoints of an unfinished one (else a re-run resumes from them)."""
     out = Path(out)
-    if (out / "metrics.json").exists() and not force:
-        raise FileExistsError(f"{out}/metrics.json exists: a finished run is never overwritten; pass --force")
-    out.mkdir(parents=True, exist_ok=True)
+    if (out / marker).exists() and not force:
+        raise FileExistsError(f"{out / marker} exists: a finished run is never overwritten; pass --force")
+    try:
+        if force:
+            shutil.rmtree(out / "checkpoints", ignore_errors=True)
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise FileExistsError(f"cannot create the output folder {str(out)!r}: {err.strerror or err}") from None
     return out
 
 
-def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
-        **extra) -> dict:
-    """Train ``trials`` seeds of ``cfg.algo`` and write the results folder.
-
-    Algorithms whose experiment is more than one Trainer (the hierarchical method, option-critic's
-    several K) have a runner in ``jaxusar/experiments/<algo>.py`` with this same signature.
-    """
-    try:
-        runner = importlib.import_module(f"jaxusar.experiments.{cfg.algo}")
-    except ModuleNotFoundError:
-        return run_flat(cfg, trials, out, force=force, quiet=quiet)
-    return runner.run(cfg, trials, out, force=force, quiet=quiet, **extra)
+def stage_seconds(outcome: Outcome) -> dict:
+    return {"compile": round(outcome.compile_seconds, 2), "run": round(outcome.run_seconds, 2),
+            "chunks": outcome.chunks, "resumed_from_chunk": outcome.resumed_from_chunk}
 
 
-def flat_metrics(cfg: ExperimentConfig, trials: int, results: dict, optimal: int, wall: float, **extra) -> dict:
+def flat_metrics(cfg: ExperimentConfig, results: dict, optimal: int, outcome: Outcome, **extra) -> dict:
     """metrics.json of one Trainer's results (``extra`` keys go after ``algorithm``)."""
     eto = results["episodes_to_optimal"]
     return {
-        "algorithm": cfg.algo, **extra, "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
+        "algorithm": cfg.algo, **extra, "trials": len(eto), "episodes_to_optimal": eto, **summarize(eto),
         "episodes_to_solved": results["episodes_to_solved"],
         "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
         "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
-        "env_steps_per_trial": results["env_steps"].tolist(), "wall_seconds": round(wall, 2),
+        "env_steps_per_trial": results["env_steps"].tolist(), "seconds": stage_seconds(outcome),
         "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
     }
 
@@ -152,24 +161,66 @@ def write_trial_files(out: Path, results: dict) -> None:
     save_params(out / "params", results["best_params"])
 
 
-def run_flat(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False) -> dict:
-    """Train ``trials`` seeds of a flat algorithm in one vmapped call and write the results folder."""
-    if trials < 1:
-        raise ConfigError(f"--trials must be >= 1, got {trials}")
-    out = prepare_out(out, force)
+class FlatExperiment:
+    """One Trainer over the trials: IQL, or any learner in jaxusar/algos without an experiment file."""
+
+    def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
+        self.cfg = cfg
+        self.env, self.optimal, _, trainer = build(cfg)
+        self.chains = [[Stage(cfg.algo, trainer, keys)]]
+
+    def finish(self, out: Path, outcomes: dict[str, Outcome], quiet: bool = False) -> dict:
+        cfg, o = self.cfg, outcomes[self.cfg.algo]
+        results = o.results
+        metrics = flat_metrics(cfg, results, self.optimal, o)
+        write_trial_files(out, results)
+        training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
+                        optimal_steps=self.optimal)
+        if not quiet:
+            print(f"[{cfg.algo}] episodes_to_optimal per trial: {metrics['episodes_to_optimal']}; best "
+                  f"{metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal", flush=True)
+        return metrics
+
+
+def experiment(cfg: ExperimentConfig, keys: jax.Array, **extra):
+    """The experiment object of ``cfg.algo`` (see the module docstring)."""
+    try:
+        module = importlib.import_module(f"jaxusar.experiments.{cfg.algo}")
+    except ModuleNotFoundError:
+        if extra:
+            raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}") from None
+        return FlatExperiment(cfg, keys)
+    return module.Experiment(cfg, keys, **extra)
+
+
+def stage_progress(quiet: bool):
+    return None if quiet else (lambda name, info: print_progress(name)(info))
+
+
+def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
+        checkpoint_every: float = 60.0, devices=None, **extra) -> dict:
+    """Train ``trials`` seeds of ``cfg.algo`` (one vmapped call per trainer) and write the results folder.
+
+    Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics.
+    """
     start = time.perf_counter()
-    env, optimal, _, trainer = build(cfg)
-    keys = jax.random.split(jax.random.PRNGKey(cfg.seed), trials)
-    state = trainer.train(keys, progress=None if quiet else print_progress(cfg.algo))
-    results = trainer.results(state)
-    wall = time.perf_counter() - start
-    eto = results["episodes_to_optimal"]
-    metrics = flat_metrics(cfg, trials, results, optimal, wall)
-    write_trial_files(out, results)
-    training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=env.horizon,
-                    optimal_steps=optimal)
+    keys = trial_keys(cfg.seed, trials)
+    out = prepare_out(out, force)
+    exp = experiment(cfg, keys, **extra)
+    runner = Runner(out / "checkpoints", cfg.hash(), checkpoint_every, devices, stage_progress(quiet))
+    outcomes = runner.run(exp.chains, workers=worker_count(len(exp.chains)))
+    outcomes = gather(outcomes, {s.name: s for chain in exp.chains for s in chain})
+    if jax.process_index() != 0:
+        return {}
+    metrics = exp.finish(out, outcomes, quiet)
+    metrics["wall_seconds"] = round(time.perf_counter() - start, 2)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)
     if not quiet:
-        print(f"[{cfg.algo}] episodes_to_optimal per trial: {eto}; best {metrics['best']}, "
-              f"median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal; {wall:.1f}s; wrote {out}")
-    return {"metrics": metrics, "results": results}
+        print(f"[{cfg.algo}] {metrics['wall_seconds']:.1f}s; wrote {out}", flush=True)
+    return metrics
+
+
+def worker_count(chains: int, workers: int | None = None) -> int:
+    """Chains trained side by side: by default one per CPU core (a vmapped call keeps about one busy)."""
+    return max(1, min(chains, workers or os.cpu_count() or 1))
