@@ -203,10 +203,36 @@ def add_reproduce(subparsers) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="trainers run side by side (default: one per CPU core)")
     p.add_argument("--distributed", action="store_true",
-                   help="several processes/hosts: call jax.distributed.initialize() (its settings from the "
-                        "environment, see README) and split the trials across the processes")
+                   help="several processes or hosts: call jax.distributed.initialize() and split the trials "
+                        "across the processes (README: 'Beyond one device'); without the three options below, "
+                        "JAX detects the cluster itself (Slurm, Open MPI, TPU pods)")
+    p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="with --distributed: address of process 0, the same on every process")
+    p.add_argument("--num-processes", type=int, default=None, metavar="N", help="with --distributed: processes in all")
+    p.add_argument("--process-id", type=int, default=None, metavar="I", help="with --distributed: this process, 0..N-1")
     add_run_arguments(p)
     p.set_defaults(run=reproduce)
+
+
+def start_distributed(args: argparse.Namespace) -> None:
+    """Check the --distributed options (before anything waits on the network), then join the cluster."""
+    cluster = {"--coordinator": args.coordinator, "--num-processes": args.num_processes,
+               "--process-id": args.process_id}
+    given = [k for k, v in cluster.items() if v is not None]
+    if not args.distributed:
+        if given:
+            raise UsageError(f"{', '.join(given)} need --distributed")
+        return
+    n, i = args.num_processes, args.process_id
+    if n is not None and n < 1:
+        raise UsageError(f"--num-processes must be >= 1, got {n}")
+    if n is not None and i is not None and not 0 <= i < n:
+        raise UsageError(f"--process-id must be in 0..{n - 1}, got {i}")
+    if n is not None and args.trials % n:
+        raise UsageError(f"--trials {args.trials} cannot be split evenly over {n} processes")
+    import jax
+
+    jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=n, process_id=i)
 
 
 def reproduce(args: argparse.Namespace) -> int:
@@ -218,10 +244,7 @@ def reproduce(args: argparse.Namespace) -> int:
     check_run_arguments(args)
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")
-    if args.distributed:
-        import jax
-
-        jax.distributed.initialize()
+    start_distributed(args)
     try:
         experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
                        checkpoint_every=args.checkpoint_every, workers=args.workers)

@@ -45,25 +45,3 @@ def test_train_bad_input_is_one_line_before_compiling(argv, message, tmp_path, c
     err = capsys.readouterr().err
     assert e.value.code == 2 and message in err and "Traceback" not in err
     assert not (tmp_path / "x" / "metrics.json").exists()
-
-
-def test_train_hierarchical_end_to_end(tmp_path):
-    out = tmp_path / "hier"
-    assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet",
-                 "--set", "train.episodes=20", "--set", "train.chunk_steps=1000", "--set", "env.horizon=60",
-                 "--set", "hierarchical.coordinator.episodes=3", "--set", "hierarchical.coordinator.chunk_steps=16"]) == 0
-    m = json.loads((out / "metrics.json").read_text())
-    assert m["options"] == ["NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-BOTTOM-ROOM", "TRIAGE-TOP-VICTIM",
-                            "TRIAGE-BOTTOM-VICTIM"]
-    assert len(m["tasks"]) == 6 and set(m["subpolicy_episodes_to_optimal"]["per_task"]) == set(m["tasks"])
-    for k in ("episodes_to_optimal", "coordinator_episodes_to_optimal", "seconds", "wall_seconds"):
-        assert k in m
-    # the total is the sub-policy sum plus the coordinator's count, when both exist
-    s, c, t = (m["subpolicy_episodes_to_optimal"]["sum"][0], m["coordinator_episodes_to_optimal"][0],
-               m["episodes_to_optimal"][0])
-    assert t == (None if s is None or c is None else s + c)
-    for f in ("fig4_subpolicies.png", "fig4_agent0_navigate-to-bottom-room.png", "fig4_triage-top-victim.png",
-              "coordinator.png", "team_episode.png", "curves.csv", "params/trial_0.msgpack"):
-        assert (out / f).stat().st_size > 0, f
-    stages = {r["stage"] for r in csv.DictReader(open(out / "curves.csv"))}
-    assert stages == {"subpolicy", "coordinator"}

@@ -66,7 +66,9 @@ class Runner:
         self.checkpoint_every, self.devices, self.progress = checkpoint_every, devices, progress
 
     def path(self, stage: Stage) -> Path:
-        return self.folder / f"{stage.name.replace('/', '.')}.ckpt"
+        """``<folder>/<stage>.ckpt``; with several processes each has its own (``<stage>.p<i>.ckpt``)."""
+        process = f".p{jax.process_index()}" if jax.process_count() > 1 else ""
+        return self.folder / f"{stage.name.replace('/', '.')}{process}.ckpt"
 
     def run(self, chains: list[list[Stage]], workers: int = 1) -> dict[str, Outcome]:
         """Every chain, up to ``workers`` at once, in the order given; returns {stage name: Outcome}."""

@@ -61,7 +61,7 @@ def algorithm_module(name: str):
 def environment_info() -> dict:
     return {"jax": jax.__version__, "flax": flax.__version__, "optax": optax.__version__,
             "numpy": np.__version__, "python": platform.python_version(), "machine": platform.machine(),
-            "processor": cpu_name(), "devices": [str(d) for d in jax.devices()]}
+            "processor": cpu_name(), "cpu_count": os.cpu_count(), "devices": [str(d) for d in jax.devices()]}
 
 
 def cpu_name() -> str:

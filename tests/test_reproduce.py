@@ -1,0 +1,199 @@
+"""``jaxusar reproduce`` and the run machinery under it: statistics over trials, atomic checkpoints,
+resuming after SIGKILL with results equal to an uninterrupted run, trials sharded over two devices."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxusar.cli import main
+from jaxusar.core import checkpoint
+from jaxusar.core.checkpoint import CheckpointError
+from jaxusar.experiments import reproduce, stats
+
+# Every algorithm of the pipeline on budgets of seconds: 2 trials, one option-critic K.
+TINY = ["--trials", "2", "--quiet", "--set", "env.horizon=60", "--set", "train.test_every=10",
+        "--set", "hierarchical.train.episodes=20", "--set", "hierarchical.train.chunk_steps=600",
+        "--set", "hierarchical.hierarchical.coordinator.episodes=4",
+        "--set", "hierarchical.hierarchical.coordinator.chunk_steps=8",
+        "--set", "doc.doc.options=[2]", "--set", "doc.train.episodes=20", "--set", "doc.train.chunk_steps=400",
+        "--set", "iql.train.episodes=60", "--set", "iql.train.chunk_steps=400"]
+ALGOS = ("hierarchical", "doc/K2", "iql")
+
+
+def without_timings(results: dict) -> dict:
+    """results.json minus what legitimately differs between two runs of one command (seconds, resume)."""
+    rows = {k: {f: v for f, v in r.items() if f != "seconds"} for k, r in results["algorithms"].items()}
+    where = ("resumed", "devices_per_trainer", "environment")
+    return {**{k: v for k, v in results.items() if not k.startswith(("wall_seconds", "seconds")) and k not in where},
+            "algorithms": rows}
+
+
+def curves(out: Path) -> dict[str, str]:
+    return {a: (out / a / "curves.csv").read_text() for a in ALGOS}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One uninterrupted tiny reproduction (in this process, one device)."""
+    out = tmp_path_factory.mktemp("reference") / "run"
+    assert main(["reproduce", "--out", str(out)] + TINY) == 0
+    return out
+
+
+# -- statistics -------------------------------------------------------------------------------------
+def test_summary_statistics_by_hand():
+    s = stats.summarize([800, 100, 300, 200, 700, 400, 600, 500])
+    # IQM of 8: drop the 2 lowest and 2 highest, mean of 300..600
+    assert s["best"] == 100 and s["median"] == 450 and s["iqm"] == 450 and s["fraction_optimal"] == 1
+    lo, hi = s["iqm_ci95"]
+    assert 100 <= lo < 450 < hi <= 800
+
+
+def test_never_counts_as_above_the_budget():
+    s = stats.summarize([100, 200, 300, 400, 500, 600, None, None])
+    assert s["best"] == 100 and s["fraction_optimal"] == 0.75
+    assert s["iqm"] == 450  # the two nevers fall in the trimmed top quarter
+    assert s["median"] == 450
+    lo, hi = s["iqm_ci95"]
+    assert lo is not None and hi is None  # some resamples have a never in their middle half
+    s = stats.summarize([100, 200, 300, 400, 500, None, None, None])
+    assert s["iqm"] is None and s["median"] == 450
+    s = stats.summarize([None] * 4)
+    assert s == {"best": None, "median": None, "iqm": None, "iqm_ci95": [None, None], "fraction_optimal": 0.0}
+
+
+# -- checkpoints ------------------------------------------------------------------------------------
+def test_checkpoint_round_trip_is_atomic_and_checks_shapes(tmp_path):
+    tree = {"w": jnp.arange(6, dtype=jnp.float32).reshape(2, 3), "n": jnp.int32(7), "b": jnp.array([True, False])}
+    path = tmp_path / "s.ckpt"
+    checkpoint.save(path, tree, {"chunk": 3})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ckpt"]  # the temporary file was renamed
+    got, meta = checkpoint.load(path, jax.eval_shape(lambda: tree))
+    assert meta == {"chunk": 3}
+    for k in tree:
+        np.testing.assert_array_equal(got[k], tree[k])
+        assert got[k].dtype == tree[k].dtype
+    wrong = {**tree, "w": jnp.zeros((3, 2), jnp.float32)}
+    with pytest.raises(CheckpointError, match=r"float32\[3, 2\]"):
+        checkpoint.load(path, wrong)
+    (tmp_path / "bad.ckpt").write_bytes(b"\x00garbage")
+    with pytest.raises(CheckpointError, match="bad.ckpt"):
+        checkpoint.load(tmp_path / "bad.ckpt", tree)
+
+
+# -- the command ------------------------------------------------------------------------------------
+def test_reproduce_writes_the_table_figures_and_statistics(reference, capsys):
+    r = json.loads((reference / "results.json").read_text())
+    assert set(r["algorithms"]) == {"hierarchical", "doc_K2", "iql"}
+    assert r["optimal_team_steps"] == 18 and r["trials"] == 2 and r["wall_seconds"] > 0
+    for row in r["algorithms"].values():
+        assert len(row["episodes_to_optimal"]) == 2
+        assert {"best", "median", "iqm", "iqm_ci95", "fraction_optimal", "budget_episodes"} <= set(row)
+        assert row["seconds"]["compile"] > 0 and row["seconds"]["run"] > 0
+    assert r["algorithms"]["iql"]["budget_episodes"] == 60
+    assert r["algorithms"]["hierarchical"]["budget_episodes"] == 6 * 20 + 4
+    assert {"jax", "flax", "optax"} <= set(r["environment"]) and set(r["config_hashes"]) == {"hierarchical", "doc", "iql"}
+    table = (reference / "table2.md").read_text()
+    assert "| Independent Q-learning | > 5,000 |" in table and "| Distributed option-critic, 2 options | 1,500 |" in table
+    for f in ("fig4_subpolicies.png", "fig5_doc.png", "fig6_iql.png", "team_episode.png"):
+        assert (reference / f).read_bytes()[:4] == b"\x89PNG", f
+    # each algorithm's own folder, as `jaxusar train` writes it
+    h = json.loads((reference / "hierarchical" / "metrics.json").read_text())
+    assert h["options"] == ["NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-BOTTOM-ROOM", "TRIAGE-TOP-VICTIM",
+                            "TRIAGE-BOTTOM-VICTIM"]
+    assert len(h["tasks"]) == 6 and set(h["subpolicy_episodes_to_optimal"]["per_task"]) == set(h["tasks"])
+    for j in range(2):  # the total is the sub-policy sum plus the coordinator's count, when both exist
+        s, c = h["subpolicy_episodes_to_optimal"]["sum"][j], h["coordinator_episodes_to_optimal"][j]
+        assert h["episodes_to_optimal"][j] == (None if s is None or c is None else s + c)
+    assert {row["stage"] for row in csv.DictReader(open(reference / "hierarchical" / "curves.csv"))} == \
+        {"subpolicy", "coordinator"}
+    assert (reference / "hierarchical" / "params" / "trial_1.msgpack").stat().st_size > 0
+    assert not (reference / "checkpoints").exists()  # removed once the run has finished
+    # a finished run is never overwritten without --force
+    with pytest.raises(SystemExit) as e:
+        main(["reproduce", "--out", str(reference)] + TINY)
+    assert e.value.code == 2 and "--force" in capsys.readouterr().err
+
+
+def test_killed_run_resumes_to_the_uninterrupted_results(reference, tmp_path):
+    """SIGKILL once the first checkpoint is on disk, then the same command: it resumes, and every
+    number equals the uninterrupted run's."""
+    out = tmp_path / "run"
+    argv = ["reproduce", "--out", str(out), "--checkpoint-every", "0"] + TINY
+    proc = subprocess.Popen([sys.executable, "-m", "jaxusar.cli", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while not list((out / "checkpoints").glob("*.ckpt")):
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert time.monotonic() < deadline, "no checkpoint was written"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (out / "results.json").exists()
+    assert main(argv) == 0
+    got, want = (json.loads((d / "results.json").read_text()) for d in (out, reference))
+    assert got["resumed"] is True
+    assert without_timings(got) == without_timings(want)
+    assert curves(out) == curves(reference)
+
+
+SHARDED = """
+import json, sys
+import jax
+from jaxusar.experiments import reproduce
+assert len(jax.devices()) == 2, jax.devices()
+print(json.dumps(reproduce.run(*json.loads(sys.argv[1]))))
+"""
+
+
+def test_trials_sharded_over_two_devices_equal_one_device(reference, tmp_path):
+    """XLA's host platform split into two devices: the trials axis is sharded over both, and every
+    result equals the one-device reference."""
+    out = tmp_path / "run"
+    sets = [TINY[i + 1] for i, a in enumerate(TINY) if a == "--set"]
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    done = subprocess.run([sys.executable, "-c", SHARDED, json.dumps([2, str(out), False, sets, False, True])],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    got = json.loads((out / "results.json").read_text())
+    want = json.loads((reference / "results.json").read_text())
+    assert got["devices_per_trainer"] == 2 and want["devices_per_trainer"] == 1
+    assert without_timings(got) == without_timings(want)
+    assert curves(out) == curves(reference)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--trials", "0"], "--trials"),
+    (["--workers", "0"], "--workers"),
+    (["--checkpoint-every", "-1"], "--checkpoint-every"),
+    (["--set", "iql.dqn.gamma=2"], "iql: dqn.gamma"),
+    (["--set", "train.nope=1"], "train.nope"),
+    (["--set", "doc.seed=3"], "same seed"),
+    (["--trials", "3", "--distributed", "--num-processes", "2", "--process-id", "0",
+      "--coordinator", "127.0.0.1:1"], "cannot be split evenly over 2 processes"),
+    (["--process-id", "0"], "--distributed"),
+])
+def test_reproduce_bad_input_is_one_line_before_compiling(argv, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["reproduce", "--out", str(tmp_path / "x")] + argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and message in err and "Traceback" not in err
+    assert not (tmp_path / "x" / "results.json").exists()
+
+
+def test_table2_marks_what_never_reached_optimal():
+    rows = {"iql": {"episodes_to_optimal": [None, 900], "best": 900, "median": None, "iqm": None,
+                    "iqm_ci95": [900.0, None], "fraction_optimal": 0.5, "budget_episodes": 5000}}
+    text = reproduce.table2({"algorithms": rows, "map": "two_rooms", "optimal_team_steps": 18, "trials": 2,
+                             "command": "jaxusar reproduce --trials 2"})
+    assert "| Independent Q-learning | > 5,000 | 900 | 1/2 | > 5,000 | > 5,000 [900, > 5,000] | 5,000 |" in text
