@@ -5,6 +5,7 @@ import csv
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -33,7 +34,7 @@ ALGOS = ("hierarchical", "doc/K2", "iql")
 def without_timings(results: dict) -> dict:
     """results.json minus what legitimately differs between two runs of one command (seconds, resume)."""
     rows = {k: {f: v for f, v in r.items() if f != "seconds"} for k, r in results["algorithms"].items()}
-    where = ("resumed", "devices_per_trainer", "environment")
+    where = ("resumed", "devices_per_trainer", "processes", "environment")
     return {**{k: v for k, v in results.items() if not k.startswith(("wall_seconds", "seconds")) and k not in where},
             "algorithms": rows}
 
@@ -172,6 +173,26 @@ def test_trials_sharded_over_two_devices_equal_one_device(reference, tmp_path):
     assert curves(out) == curves(reference)
 
 
+def test_trials_split_over_two_processes_equal_one_process(reference, tmp_path):
+    """Two processes joined by jax.distributed on this machine, one trial each: process 0 gathers
+    every trial's results and writes the same numbers as the one-process reference."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "run"
+    procs = [subprocess.Popen([sys.executable, "-m", "jaxusar.cli", "reproduce", "--out", str(out), "--distributed",
+                               "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)]
+                              + TINY, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for i in (0, 1)]
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    got = json.loads((out / "results.json").read_text())
+    want = json.loads((reference / "results.json").read_text())
+    assert got["processes"] == 2 and want["processes"] == 1
+    assert without_timings(got) == without_timings(want)
+    assert curves(out) == curves(reference)
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--trials", "0"], "--trials"),
     (["--workers", "0"], "--workers"),
@@ -196,4 +217,8 @@ def test_table2_marks_what_never_reached_optimal():
                     "iqm_ci95": [900.0, None], "fraction_optimal": 0.5, "budget_episodes": 5000}}
     text = reproduce.table2({"algorithms": rows, "map": "two_rooms", "optimal_team_steps": 18, "trials": 2,
                              "command": "jaxusar reproduce --trials 2"})
-    assert "| Independent Q-learning | > 5,000 | 900 | 1/2 | > 5,000 | > 5,000 [900, > 5,000] | 5,000 |" in text
+    assert "| Independent Q-learning | > 5,000 | 900 | 1/2 | > 5,000 | > 5,000 [900, > 5,000] | 5,000 | - | - |" in text
+    rows["iql"].update(episodes_to_solved=[700, 800], best_test_steps=[25, 18])
+    text = reproduce.table2({"algorithms": rows, "map": "two_rooms", "optimal_team_steps": 18, "trials": 2,
+                             "command": "jaxusar reproduce --trials 2"})
+    assert "| 5,000 | 2/2 | 18 |" in text
