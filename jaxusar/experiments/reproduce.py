@@ -4,10 +4,12 @@ Runs the hierarchical method, option-critic (K = 2, 4, 8) and IQL, each with N t
 call per trainer, all trainers side by side (one per CPU core), with resumable checkpoints, and writes::
 
     results.json          per algorithm (and per K): episodes_to_optimal per trial (null = never), best,
-                          median, IQM with its 95% bootstrap interval, fraction of trials optimal, compile
-                          and run seconds per trainer; the planner's optimum; total wall seconds;
-                          versions, config hashes, the machine
-    table2.md             the paper's Table II beside ours
+                          median, IQM with its 95% bootstrap interval, fraction of trials optimal, episodes
+                          to the first test solved at any length, each trial's best test steps, compile and
+                          run seconds per trainer; seconds_by_algorithm (setup, compile, run, write); the
+                          planner's optimum; this invocation's wall seconds; versions, config hashes, the
+                          machine, workers, devices and processes
+    table2.md             the paper's Table II beside ours, and the paper's method stage by stage
     fig4_subpolicies.png  sub-policy train/test steps vs episodes (paper Fig. 4)
     fig5_doc.png          option-critic, the K on one figure (paper Fig. 5)
     fig6_iql.png          IQL (paper Fig. 6)
