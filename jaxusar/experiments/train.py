@@ -26,7 +26,6 @@ import platform
 import shutil
 import time
 from pathlib import Path
-from typing import Callable
 
 import flax
 import jax
@@ -74,11 +73,10 @@ def cpu_name() -> str:
     return platform.processor()
 
 
-def print_progress(name: str) -> Callable[[dict], None]:
-    def show(p):
-        print(f"[{name}] chunk {p['chunk']}: episodes {p['episodes_min']}/{p['episodes_total']} "
-              f"(mean {p['episodes_mean']:.0f}), {p['elapsed']:.1f}s elapsed, ETA {p['eta']:.0f}s", flush=True)
-    return show
+def print_progress(name: str, p: dict) -> None:
+    """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk)."""
+    print(f"[{name}] chunk {p['chunk']}: episodes {p['episodes_min']}/{p['episodes_total']} "
+          f"(mean {p['episodes_mean']:.0f}), {p['elapsed']:.1f}s elapsed, ETA {p['eta']:.0f}s", flush=True)
 
 
 def build(cfg: ExperimentConfig):
@@ -194,7 +192,7 @@ def experiment(cfg: ExperimentConfig, keys: jax.Array, **extra):
 
 
 def stage_progress(quiet: bool):
-    return None if quiet else (lambda name, info: print_progress(name)(info))
+    return None if quiet else print_progress
 
 
 def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
