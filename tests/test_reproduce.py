@@ -92,6 +92,22 @@ def test_checkpoint_round_trip_is_atomic_and_checks_shapes(tmp_path):
         checkpoint.load(tmp_path / "bad.ckpt", tree)
 
 
+def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
+    """Resuming with other settings (here: another fingerprint) would mix two runs: refused, by name."""
+    from jaxusar import config
+    from jaxusar.experiments.runner import Runner, Stage
+    from jaxusar.experiments.train import build
+
+    cfg = config.load(sets=["train.episodes=10", "train.test_every=10", "env.horizon=40", "train.chunk_steps=400"])
+    trainer = build(cfg)[3]
+    stage = Stage("iql", trainer, jax.random.split(jax.random.PRNGKey(0), 2))
+    runner = Runner(tmp_path, fingerprint="this-run")
+    checkpoint.save(runner.path(stage), trainer.init(stage.keys),
+                    {"fingerprint": "another-run", "stage": "iql", "chunk": 1, "run_seconds": 1.0, "finished": False})
+    with pytest.raises(CheckpointError, match="another configuration.*--force"):
+        runner.run([[stage]])
+
+
 # -- the command ------------------------------------------------------------------------------------
 def test_reproduce_writes_the_table_figures_and_statistics(reference, capsys):
     r = json.loads((reference / "results.json").read_text())
