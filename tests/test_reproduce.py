@@ -167,9 +167,16 @@ def test_killed_run_resumes_to_the_uninterrupted_results(reference, tmp_path):
 SHARDED = """
 import json, sys
 import jax
+from jaxusar.config import ConfigError
 from jaxusar.experiments import reproduce
 assert len(jax.devices()) == 2, jax.devices()
-print(json.dumps(reproduce.run(*json.loads(sys.argv[1]))))
+args = json.loads(sys.argv[1])
+try:  # an odd trial count cannot be sharded over two devices: an error before anything compiles
+    reproduce.run(3, *args[1:])
+    raise SystemExit("3 trials on 2 devices ran")
+except ConfigError as err:
+    assert "cannot be split evenly over 2 devices" in str(err), err
+print(json.dumps(reproduce.run(*args)))
 """
 
 

@@ -85,7 +85,7 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
     """Everything above; returns the results.json dict (in every process; only process 0 writes)."""
     start = time.perf_counter()
     cfgs = configs(quick, sets)  # bad settings fail here, before anything compiles
-    keys = train.trial_keys(cfgs["iql"].seed, trials)
+    keys = train.trial_keys(cfgs["iql"].seed, trials, devices)
     if len({c.seed for c in cfgs.values()}) != 1:
         raise config.ConfigError("every algorithm must use the same seed (the trials are the same seeds)")
     out = train.prepare_out(out, force, marker="results.json")

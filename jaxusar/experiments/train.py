@@ -89,14 +89,21 @@ def build(cfg: ExperimentConfig):
     return env, optimal, learner, trainer
 
 
-def trial_keys(seed: int, trials: int) -> jax.Array:
-    """One PRNG key per trial; with several processes (jax.distributed), this process's contiguous share."""
+def trial_keys(seed: int, trials: int, devices=None) -> jax.Array:
+    """One PRNG key per trial; with several processes (jax.distributed), this process's contiguous share.
+
+    Checks up front that the trials split evenly over the processes and over each process's
+    ``devices`` (default: its local devices), so a bad count fails before anything compiles."""
     if trials < 1:
         raise ConfigError(f"--trials must be >= 1, got {trials}")
     n, i = jax.process_count(), jax.process_index()
     if trials % n:
         raise ConfigError(f"--trials {trials} cannot be split evenly over {n} processes")
     per = trials // n
+    local = len(jax.local_devices() if devices is None else devices)
+    if per % local:
+        raise ConfigError(f"--trials {trials} cannot be split evenly over {n * local} devices "
+                          f"({n} process(es) x {local}); use a multiple of {n * local}")
     return jax.random.split(jax.random.PRNGKey(seed), trials)[i * per:(i + 1) * per]
 
 
@@ -202,7 +209,7 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
     Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics.
     """
     start = time.perf_counter()
-    keys = trial_keys(cfg.seed, trials)
+    keys = trial_keys(cfg.seed, trials, devices)
     out = prepare_out(out, force)
     exp = experiment(cfg, keys, **extra)
     runner = Runner(out / "checkpoints", cfg.hash(), checkpoint_every, devices, stage_progress(quiet))
