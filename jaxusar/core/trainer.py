@@ -50,6 +50,11 @@ NEVER = np.iinfo(np.int32).max
 MAX_SNAPSHOT_SLOTS = 8  # policy snapshots awaiting their greedy test, per trial
 
 
+def trial_devices(devices=None) -> list:
+    """The devices a trials axis is sharded over: ``devices``, or by default every local device."""
+    return list(jax.local_devices() if devices is None else devices)
+
+
 @struct.dataclass
 class Snapshots:
     params: object        # [S, ...] policy params
@@ -321,7 +326,7 @@ class Trainer:
         across devices, so the results equal a one-device run. ``len(devices)`` must divide the trials."""
         from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-        devices = list(jax.local_devices() if devices is None else devices)
+        devices = trial_devices(devices)
         n_trials = jax.tree.leaves(state.trials)[0].shape[0]
         if n_trials % len(devices):
             raise ConfigError(f"{n_trials} trials cannot be split evenly over {len(devices)} devices")

@@ -33,6 +33,7 @@ from pathlib import Path
 import jax
 
 from jaxusar import config
+from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments import train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.stats import summarize
@@ -106,7 +107,7 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
     n_workers = train.worker_count(len(chains), workers)
     if not quiet:
         print(f"[reproduce] {trials} trials; {len(chains)} trainers, {n_workers} at a time; "
-              f"{len(runner_devices(devices))} device(s) per trainer; writing {out}", flush=True)
+              f"{len(trial_devices(devices))} device(s) per trainer; writing {out}", flush=True)
     outcomes = runner.run(chains, workers=n_workers)
     outcomes = gather(outcomes, {s.name: s for c in chains for s in c})
     train_seconds = time.perf_counter() - start
@@ -131,7 +132,7 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
     results["wall_seconds"] = round(time.perf_counter() - start, 2)
     results["wall_seconds_training"] = round(train_seconds, 2)
     results["workers"] = n_workers
-    results["devices_per_trainer"] = len(runner_devices(devices))
+    results["devices_per_trainer"] = len(trial_devices(devices))
     results["processes"] = jax.process_count()
     results["resumed"] = any(o.resumed_from_chunk is not None for o in outcomes.values())
     (out / "table2.md").write_text(table2(results))
@@ -141,10 +142,6 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
         print("\n" + (out / "table2.md").read_text(), flush=True)
         print(f"[reproduce] {results['wall_seconds']:.1f}s in all; wrote {out}", flush=True)
     return results
-
-
-def runner_devices(devices):
-    return list(jax.local_devices() if devices is None else devices)
 
 
 def expected_cost(stage) -> float:

@@ -36,6 +36,7 @@ from flax import serialization
 from jaxusar import envs, planning
 from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
+from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments.runner import Outcome, Runner, Stage, gather
 from jaxusar.experiments.stats import summarize
 from jaxusar.experiments.plots import training_figure
@@ -100,7 +101,7 @@ def trial_keys(seed: int, trials: int, devices=None) -> jax.Array:
     if trials % n:
         raise ConfigError(f"--trials {trials} cannot be split evenly over {n} processes")
     per = trials // n
-    local = len(jax.local_devices() if devices is None else devices)
+    local = len(trial_devices(devices))
     if per % local:
         raise ConfigError(f"--trials {trials} cannot be split evenly over {n * local} devices "
                           f"({n} process(es) x {local}); use a multiple of {n * local}")
