@@ -62,14 +62,22 @@ class EnvConfig:
 @dataclasses.dataclass(frozen=True)
 class DQNConfig:
     hidden: tuple[int, ...] = _field((32, 32), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
-    lr: float = _field(5e-4, _positive, "Adam learning rate")
+    lr: float = _field(5e-4, _positive, "Adam learning rate, > 0")
+    lr_schedule: str = _field("constant", lambda s: s in ("constant", "linear", "cosine"),
+                              "constant, linear or cosine decay from lr to lr_end over lr_decay_updates")
+    lr_end: float = _field(5e-5, _positive, "final learning rate of a decaying lr_schedule, in (0, lr]")
+    lr_decay_updates: int = _field(20_000, _positive, "gradient updates of the lr decay, >= 1")
     gamma: float = _field(0.99, lambda g: 0 < g <= 1, "discount, in (0, 1]")
     batch_size: int = _field(32, _positive)
     buffer_capacity: int = _field(50_000, _positive, "replay rows per learner")
     learning_starts: int = _field(1_000, _non_negative, "env steps before the first update")
-    train_every: int = _field(8, _positive, "env steps per gradient update")
+    train_every: int = _field(8, _positive, "env steps between learning steps, >= 1")
+    gradient_steps: int = _field(1, _positive, "gradient updates per learning step, >= 1 (replay ratio = "
+                                 "gradient_steps / train_every updates per env step)")
+    n_step: int = _field(1, _positive, "steps of the return before bootstrapping, >= 1 (cut at episode ends)")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")
-    tau: float = _field(1.0, lambda t: 0 < t <= 1, "1 = hard copy every target_update_every; < 1 = Polyak each update")
+    tau: float = _field(1.0, lambda t: 0 < t <= 1, "in (0, 1]: 1 = hard copy every target_update_every; "
+                        "< 1 = Polyak averaging each update")
     double_dqn: bool = _field(False)
     loss: str = _field("huber", lambda s: s in ("huber", "mse"), "huber or mse")
     max_grad_norm: float = _field(10.0, _positive)
@@ -123,6 +131,8 @@ class CoordinatorConfig:
     buffer_capacity: int = _field(2_000, _positive)
     learning_starts: int = _field(16, _non_negative, "decisions before the first update")
     target_update_every: int = _field(20, _positive)
+    gradient_steps: int = _field(1, _positive, "gradient updates per decision, >= 1")
+    n_step: int = _field(1, _positive, "decisions (options) of the return before bootstrapping, >= 1")
     eps_start: float = _field(1.0, _unit_interval)
     eps_end: float = _field(0.05, _unit_interval)
     eps_decay_steps: int = _field(200, _positive, "decisions of the linear epsilon decay")
@@ -140,6 +150,9 @@ class HierarchicalConfig:
         {"TRIAGE-BOTTOM-VICTIM": 0.9}, lambda d: all(0 < g <= 1 for g in d.values()), "per-task discount overriding dqn.gamma (paper Fig. 4f)")
     triage_start: str = _field("room", lambda s: s in ("room", "entry"),
                                "triage tasks start anywhere in the room, or at its entry cells")
+    navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
+                                 "navigation tasks start half at the medic's start and half anywhere in the "
+                                 "initiation set (mixed), or anywhere in it (initiation)")
     coordinator: CoordinatorConfig = dataclasses.field(default_factory=CoordinatorConfig)
 
 
@@ -166,6 +179,9 @@ class ExperimentConfig:
             raise ConfigError(f"dqn.buffer_capacity={d.buffer_capacity} is smaller than dqn.batch_size={d.batch_size}")
         if d.eps_end > d.eps_start:
             raise ConfigError(f"dqn.eps_end={d.eps_end} is above dqn.eps_start={d.eps_start}")
+        if d.lr_schedule != "constant" and d.lr_end > d.lr:
+            raise ConfigError(f"dqn.lr_end={d.lr_end} is above dqn.lr={d.lr}: a decaying lr_schedule needs "
+                              "lr_end in (0, lr]")
         if t.test_every > t.episodes:
             raise ConfigError(f"train.test_every={t.test_every} exceeds train.episodes={t.episodes}: no test would run")
         if t.chunk_steps < d.train_every:

@@ -100,16 +100,58 @@ def test_double_q_target_uses_online_argmax_and_target_value():
     np.testing.assert_allclose(ql.double_q_learning_target(r, disc, q_value, q_select, mask), [30.0])
 
 
-def test_smdp_target_hand_computed():
-    """k > 1 discounts by gamma^k; invalid options are excluded from the max; terminal does not bootstrap."""
+def _rows(rewards, gammas, terminal, done):
+    """A replay holding one row per step, in time order; next_obs[i] = i + 1 marks the bootstrap row."""
+    n = len(rewards)
+    buf = rb.init({"reward": jnp.zeros(()), "gamma": jnp.zeros(()), "terminal": jnp.zeros((), bool),
+                   "done": jnp.zeros((), bool), "next_obs": jnp.zeros((), jnp.int32), "obs": jnp.zeros((), jnp.int32)}, 8)
+    for i in range(n):
+        buf = rb.add(buf, {"reward": rewards[i], "gamma": gammas[i], "terminal": terminal[i], "done": done[i],
+                           "next_obs": i + 1, "obs": i})
+    return buf
+
+
+def _at(buf, i):
+    """Uniforms that draw row i (of size rows)."""
+    return jnp.array([(i + 0.5) / int(buf.size)])
+
+
+def test_n_step_returns_hand_computed():
+    """Rows 0-2 one episode cut by a time limit after row 2, rows 3-4 an episode solved at row 4, row 5
+    the newest; row 1 is an SMDP step of its own discount 0.5 (gamma^k)."""
     g = 0.9
-    r_sum = jnp.array([2.0, 2.0, 7.0])
-    k = jnp.array([3, 1, 4])
-    terminal = jnp.array([False, False, True])
-    q = jnp.array([[1.0, 50.0, 4.0], [1.0, 50.0, 4.0], [9.0, 9.0, 9.0]])
-    valid = jnp.array([[True, False, True], [True, True, True], [True, True, True]])
-    want = [2.0 + g ** 3 * 4.0, 2.0 + g * 50.0, 7.0]
-    np.testing.assert_allclose(ql.smdp_q_learning_target(r_sum, k, terminal, g, q, valid), want, rtol=1e-6)
+    r = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0]
+    gam = [g, 0.5, g, g, g, g]
+    term = [False, False, False, False, True, False]
+    done = [False, False, True, False, True, False]
+    buf = _rows(r, gam, term, done)
+    cases = {  # row: (n, return, bootstrap discount, bootstrap row)
+        0: (3, 1 + g * 2 + g * 0.5 * 4, g * 0.5 * g, 2),   # three rows, bootstrap after the cut's true next obs
+        1: (3, 2 + 0.5 * 4, 0.5 * g, 2),                    # stops at the time-limit cut: never crosses into row 3
+        3: (3, 8 + g * 16, 0.0, 4),                         # the task is solved at row 4: no bootstrap
+        4: (1, 16.0, 0.0, 4),
+        5: (3, 32.0, g, 5),                                 # the newest row: nothing after it yet
+        2: (1, 4.0, g, 2),                                  # n = 1 is the row itself, truncation bootstraps
+    }
+    for i, (n, ret, disc, last) in cases.items():
+        b = rb.sample_returns(buf, _at(buf, i), n)
+        np.testing.assert_allclose(float(b["reward"][0]), ret, rtol=1e-6)
+        np.testing.assert_allclose(float(b["discount"][0]), disc, rtol=1e-6)
+        assert int(b["next_obs"][0]) == last + 1 and int(b["obs"][0]) == i
+
+
+def test_n_step_returns_follow_the_ring_and_stop_at_the_newest_row():
+    """Capacity 8, 11 rows written: the oldest kept row is 3 (slot 3); its successors wrap to slots 0-2,
+    and the newest (row 10, slot 2) ends every return."""
+    buf = rb.init({"reward": jnp.zeros(()), "gamma": jnp.zeros(()), "terminal": jnp.zeros((), bool),
+                   "done": jnp.zeros((), bool), "next_obs": jnp.zeros((), jnp.int32)}, 8)
+    for i in range(11):
+        buf = rb.add(buf, {"reward": float(i), "gamma": 1.0, "terminal": False, "done": False, "next_obs": i + 1})
+    slot = lambda s: jnp.array([(s + 0.5) / 8])
+    b = rb.sample_returns(buf, slot(7), 4)  # row 7, then rows 8, 9, 10 in slots 0, 1, 2
+    assert float(b["reward"][0]) == 7 + 8 + 9 + 10 and int(b["next_obs"][0]) == 11
+    b = rb.sample_returns(buf, slot(1), 4)  # row 9: only row 10 after it
+    assert float(b["reward"][0]) == 9 + 10 and int(b["next_obs"][0]) == 11
 
 
 def test_epsilon_schedule_and_greedy():
@@ -129,7 +171,8 @@ def test_epsilon_schedule_and_greedy():
 def test_hard_target_copy_period():
     cfg = DQNConfig(hidden=(8,), batch_size=4, buffer_capacity=16, target_update_every=3)
     dqn = ql.DQN(3, 2, cfg, lambda b, qt, qo: b["reward"])
-    row = {"obs": jnp.ones(3), "action": jnp.int32(0), "reward": jnp.float32(1.0), "next_obs": jnp.ones(3)}
+    row = {"obs": jnp.ones(3), "action": jnp.int32(0), "reward": jnp.float32(1.0), "next_obs": jnp.ones(3),
+           "terminal": jnp.bool_(False), "done": jnp.bool_(False)}
     st = dqn.init(jax.random.PRNGKey(0), row)
     for _ in range(4):
         st = dqn.add(st, row)

@@ -162,7 +162,15 @@ def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
                           "next_obs": jnp.zeros(8), "done": jnp.bool_(False),
                           "info": {"terminated": jnp.bool_(False), "valid": jnp.bool_(False), "steps": jnp.int32(1),
                                    "discounted_reward": jnp.float32(-100)}})
-    assert bool(row["terminal"]) and int(row["k"]) == 1 and float(row["reward"]) == -100.0
+    assert bool(row["terminal"]) and float(row["reward"]) == -100.0
+    np.testing.assert_allclose(float(row["gamma"]), 0.95)
+    # a valid option of k = 3 steps discounts its bootstrap by gamma^3 (the SMDP target)
+    row = learner.row_fn({"obs": jnp.zeros(8), "action": jnp.array([0]), "reward": jnp.float32(0),
+                          "next_obs": jnp.zeros(8), "done": jnp.bool_(False),
+                          "info": {"terminated": jnp.bool_(False), "valid": jnp.bool_(True), "steps": jnp.int32(3),
+                                   "discounted_reward": jnp.float32(0)}})
+    assert not bool(row["terminal"])
+    np.testing.assert_allclose(float(row["gamma"]), 0.95 ** 3, rtol=1e-6)
 
 
 def _oracle_coordinator(episodes=60, trials=2, **overrides):

@@ -24,7 +24,8 @@ Decisions left open by the paper, made here:
   sub-task path on the two-rooms map): an imperfect sub-policy can loop from a state it rarely saw,
   and without a timeout one such loop ate the rest of the episode (measured: most of 300 steps).
 * Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
-  sum_i gamma^i r_{t+i} and k, and the target is r + gamma^k max_valid Q (``smdp_q_learning_target``).
+  sum_i gamma^i r_{t+i} and its own discount gamma^k, so the shared target r + discount * max_valid Q is
+  the SMDP target (Sutton, Precup and Singh 1999, eq. 8), and an n-step return chains whole options.
 """
 
 from __future__ import annotations
@@ -38,8 +39,7 @@ from flax import struct
 
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
-from jaxusar.core.learners import IndependentDQN, default_row
-from jaxusar.core.qlearning import smdp_q_learning_target
+from jaxusar.core.learners import IndependentDQN, default_row, one_step_target
 from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
 
 DEFAULTS = {
@@ -158,6 +158,7 @@ class MacroEnv:
 def coordinator_dqn(cfg: CoordinatorConfig) -> DQNConfig:
     return DQNConfig(hidden=cfg.hidden, lr=cfg.lr, gamma=cfg.gamma, batch_size=cfg.batch_size,
                      buffer_capacity=cfg.buffer_capacity, learning_starts=cfg.learning_starts, train_every=1,
+                     gradient_steps=cfg.gradient_steps, n_step=cfg.n_step,
                      target_update_every=cfg.target_update_every, eps_start=cfg.eps_start, eps_end=cfg.eps_end,
                      eps_decay_steps=cfg.eps_decay_steps, double_dqn=False)
 
@@ -168,12 +169,9 @@ def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
     def row(transition):
         info = transition["info"]
         row = default_row(transition)
-        return {**row, "reward": info["discounted_reward"], "k": info["steps"],
+        return {**row, "reward": info["discounted_reward"], "gamma": cfg.gamma ** info["steps"].astype(jnp.float32),
                 "terminal": row["terminal"] | ~info["valid"]}  # an invalid choice is a dead end
 
-    def target(batch, q_t_target, q_t_online):
-        valid_t = jax.vmap(macro.valid_joint)(batch["next_obs"].astype(jnp.float32))
-        return smdp_q_learning_target(batch["reward"], batch["k"], batch["terminal"], cfg.gamma, q_t_target, valid_t)
-
-    return IndependentDQN(macro.obs_dim, macro.n_joint, 1, coordinator_dqn(cfg), target, row_fn=row,
+    dqn = coordinator_dqn(cfg)
+    return IndependentDQN(macro.obs_dim, macro.n_joint, 1, dqn, one_step_target(dqn, macro.valid_joint), row_fn=row,
                           valid_fn=macro.valid_joint, mask_greedy=False)

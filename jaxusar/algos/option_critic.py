@@ -83,7 +83,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxusar.config import DOCConfig, DQNConfig
+from jaxusar.config import ConfigError, DOCConfig, DQNConfig
 from jaxusar.core import replay as rb
 from jaxusar.core.qlearning import DQN, DQNState, linear_epsilon
 from jaxusar.envs import N_ACTIONS, USAREnv
@@ -221,6 +221,9 @@ class OptionCritic:
     def __init__(self, obs_dim: int, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig):
         self.obs_dim, self.n_actions, self.n_options = obs_dim, n_actions, int(n_options)
         self.cfg, self.doc = cfg, doc
+        if cfg.n_step != 1:
+            raise ConfigError(f"dqn.n_step={cfg.n_step}: option-critic's U target is one-step (the options in "
+                              "force may change at every step); use dqn.n_step=1")
         self.critic = DQN(obs_dim, self.n_options ** 2, cfg, _critic_needs_actor)
         self.actor_net = OptionActor(tuple(doc.actor_hidden), self.n_options, n_actions)
         self.actor_optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(doc.actor_lr))
@@ -330,7 +333,7 @@ class OptionCritic:
         options = jnp.maximum(transition["next_carry"], 0)  # the options used for this step
         return {"obs": transition["obs"], "action": self.joint(options), "primitive": transition["action"],
                 "reward": transition["reward"], "next_obs": transition["next_obs"],
-                "terminal": transition["info"]["terminated"]}
+                "terminal": transition["info"]["terminated"], "done": transition["done"]}
 
     # -- learner protocol ---------------------------------------------------------------------------
     def init(self, key, transition: dict) -> DOCState:

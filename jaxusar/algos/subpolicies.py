@@ -47,7 +47,8 @@ class Task:
     option: int
     agent: int            # the agent whose start is used (NAVIGATE); -1 = any agent (TRIAGE)
     starts: np.ndarray    # int32[M, 3] (row, col, dir) training start states
-    test_starts: np.ndarray  # int32[N, 3] greedy-test start states
+    test_starts: np.ndarray  # int32[N, 3] greedy-test start states (the paper's single-start test)
+    initiation: np.ndarray   # int32[K, 3] every state the coordinator may start or re-issue the option in
 
 
 @struct.dataclass
@@ -61,6 +62,8 @@ class TaskParams:
     n_starts: jax.Array     # int32
     test_starts: jax.Array  # int32[N, 3], padded by repetition
     n_test_starts: jax.Array
+    initiation: jax.Array   # int32[K, 3], padded by repetition
+    n_initiation: jax.Array
     dist: jax.Array         # int32[H, W, 4]: optimal steps from each state to the sub-goal
     gamma: jax.Array        # float32
 
@@ -76,30 +79,33 @@ def _entry_cells(region: np.ndarray, r: int) -> list[tuple[int, int]]:
     return cells
 
 
-def make_tasks(env: USAREnv, options: Options, triage_start: str = "room") -> list[Task]:
+def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navigate_start: str = "mixed") -> list[Task]:
+    """The sub-tasks of ``options`` on ``env``. ``navigate_start``: where NAVIGATE training episodes
+    start: ``mixed`` (half at the medic's start, half anywhere in the initiation set) or ``initiation``
+    (uniformly over the initiation set, which holds the medic's start)."""
     layout, graph = env.layout, env.graph
+    victims = {tuple(v) for v in layout.victim_pos}
     tasks = []
     for o in range(options.n):
         if options.kind[o] == NAVIGATE:
             near = graph.adjacency[:, options.region[o]]
             cells = np.argwhere(near[np.maximum(graph.cell_region, 0)] & (graph.cell_region >= 0))
-            victims = {tuple(v) for v in layout.victim_pos}
             initiation = np.array([[r, c, d] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
             for i, (r, c) in enumerate(layout.agent_start):
                 if near[graph.cell_region[r, c]]:
                     start = np.array([[r, c, env.start_dir]], np.int32)
-                    half = np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
-                    tasks.append(Task(f"agent{i}:{options.names[o]}", o, i, half, start))
+                    starts = initiation if navigate_start == "initiation" else \
+                        np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
+                    tasks.append(Task(f"agent{i}:{options.names[o]}", o, i, starts, start, initiation))
         else:
             room = options.region[o]
             victim_cell = tuple(layout.victim_pos[options.victim[o]])
-            if triage_start == "entry":
-                cells = _entry_cells(graph.cell_region, room)
-            else:
-                cells = [tuple(x) for x in np.argwhere(graph.cell_region == room)]
+            in_room = [tuple(x) for x in np.argwhere(graph.cell_region == room) if tuple(x) != victim_cell]
+            cells = _entry_cells(graph.cell_region, room) if triage_start == "entry" else in_room
             cells = [c for c in cells if c != victim_cell]
             starts = np.array([[r, c, d] for r, c in cells for d in range(4)], np.int32)
-            tasks.append(Task(options.names[o], o, -1, starts, starts))
+            initiation = np.array([[r, c, d] for r, c in in_room for d in range(4)], np.int32)
+            tasks.append(Task(options.names[o], o, -1, starts, starts, initiation))
     return tasks
 
 
@@ -110,9 +116,8 @@ def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: fl
     if unknown:
         raise ConfigError(f"hierarchical.task_gamma names unknown task(s) {unknown}; tasks: {[t.name for t in tasks]}")
     layout, region = env.layout, env.graph.cell_region
-    width = max(len(t.starts) for t in tasks)
-    test_width = max(len(t.test_starts) for t in tasks)
     pad = lambda a, n: np.concatenate([a, np.repeat(a[:1], n - len(a), 0)])
+    width = {k: max(len(getattr(t, k)) for t in tasks) for k in ("starts", "test_starts", "initiation")}
     rows = []
     for t in tasks:
         victim_at = np.full(layout.shape, -1, np.int32)
@@ -124,14 +129,15 @@ def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: fl
         goal = int(options.region[t.option]) if options.kind[t.option] == NAVIGATE else -1
         dist = planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == goal) if goal >= 0 else None,
                                       triage=goal < 0)
-        d0 = dist[t.test_starts[:, 0], t.test_starts[:, 1], t.test_starts[:, 2]]
-        if np.any(d0 < 0):
-            raise ConfigError(f"task {t.name}: its sub-goal cannot be reached from some test start")
+        for k in ("test_starts", "initiation"):
+            states = getattr(t, k)
+            if np.any(dist[states[:, 0], states[:, 1], states[:, 2]] < 0):
+                raise ConfigError(f"task {t.name}: its sub-goal cannot be reached from some state of its "
+                                  f"{'test starts' if k == 'test_starts' else 'initiation set'}")
         rows.append(dict(solid=solid, victim_at=victim_at, goal_region=np.int32(goal),
-                         starts=pad(t.starts, width), n_starts=np.int32(len(t.starts)),
-                         test_starts=pad(t.test_starts, test_width), n_test_starts=np.int32(len(t.test_starts)),
-                         dist=dist,
-                         gamma=np.float32(task_gamma.get(t.name, dqn_gamma))))
+                         **{k: pad(getattr(t, k), width[k]) for k in width},
+                         **{"n_" + k: np.int32(len(getattr(t, k))) for k in width},
+                         dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma))))
     return TaskParams(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
 
 
@@ -165,17 +171,54 @@ class SubtaskEnv:
                      t=jnp.zeros((), jnp.int32))
         return self._obs(s), s
 
-    def step(self, key, s: EnvState, action, p: TaskParams):
-        pos, d, triaged, _ = apply_actions(p.solid, p.victim_at, s.agent_pos, s.agent_dir, s.triaged, action)
-        s = EnvState(agent_pos=pos, agent_dir=d, triaged=triaged, t=s.t + 1)
+    def _transition(self, pos, direction, action, p: TaskParams):
+        """One step of the task's rules from one state: (pos int32[2], dir, success)."""
+        pos, d, triaged, _ = apply_actions(p.solid, p.victim_at, pos[None], direction[None], jnp.zeros((1,), bool),
+                                           action[None])
         reached = (p.goal_region >= 0) & (jnp.asarray(self.region)[pos[0, 0], pos[0, 1]] == p.goal_region)
-        success = reached | triaged[0]
+        return pos[0], d[0], reached | triaged[0]
+
+    def step(self, key, s: EnvState, action, p: TaskParams):
+        pos, d, success = self._transition(s.agent_pos[0], s.agent_dir[0], action[0], p)
+        s = EnvState(agent_pos=pos[None], agent_dir=d[None], triaged=s.triaged | success, t=s.t + 1)
         reward = jnp.where(success, SUCCESS_REWARD, 0.0) + STEP_REWARD
         done = success | (s.t >= self.horizon)
         return self._obs(s), s, reward, done, {"terminated": success, "gamma": p.gamma}
 
     def optimal_steps_from(self, s: EnvState, p: TaskParams) -> jax.Array:
         return p.dist[s.agent_pos[0, 0], s.agent_pos[0, 1], s.agent_dir[0]]
+
+    def coverage(self, greedy, p: TaskParams) -> jax.Array:
+        """float32: the fraction of the task's initiation states from which the greedy policy reaches the
+        sub-goal on a shortest path, exactly, in one batched call.
+
+        ``greedy(obs float32[obs_dim]) -> action int32[1]``. The policy is evaluated once on every
+        (row, col, dir) of the map; a state is good when its greedy action succeeds, or leads one step
+        closer (by the planner's distance table ``p.dist``) to a good state. Since the distance drops by
+        one along such a chain, iterating to the fixed point (at most max-distance rounds) is exact:
+        a good state's greedy rollout takes exactly ``dist`` steps, and any other state's does not.
+        """
+        h, w = self.height, self.width
+        rows, cols, dirs = (x.ravel() for x in jnp.meshgrid(jnp.arange(h), jnp.arange(w), jnp.arange(4),
+                                                               indexing="ij"))
+        pos = jnp.stack([rows, cols], -1)
+        obs = jax.vmap(self.observe)(pos, dirs, jnp.zeros_like(rows, jnp.float32))
+        action = jax.vmap(greedy)(obs)[:, 0]
+        npos, ndir, success = jax.vmap(self._transition, in_axes=(0, 0, 0, None))(pos, dirs, action, p)
+        nxt = (npos[:, 0] * w + npos[:, 1]) * 4 + ndir
+        dist = p.dist.reshape(-1)
+        closer = dist[nxt] == dist - 1
+
+        def body(c):
+            good, _ = c
+            new = success | (closer & good[nxt])
+            return new, jnp.any(new != good)
+
+        good, _ = jax.lax.while_loop(lambda c: c[1], body, (success, jnp.ones((), bool)))
+        init = p.initiation
+        flat = (init[:, 0] * w + init[:, 1]) * 4 + init[:, 2]
+        counted = jnp.arange(init.shape[0]) < p.n_initiation
+        return jnp.sum(good[flat] & counted) / p.n_initiation.astype(jnp.float32)
 
 
 def make_learner(obs_dim: int, cfg: DQNConfig) -> IndependentDQN:
@@ -184,4 +227,4 @@ def make_learner(obs_dim: int, cfg: DQNConfig) -> IndependentDQN:
     def row(transition):
         return {**default_row(transition), "gamma": transition["info"]["gamma"]}
 
-    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, one_step_target(cfg, per_row_gamma=True), row_fn=row)
+    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, one_step_target(cfg), row_fn=row)

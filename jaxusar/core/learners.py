@@ -43,24 +43,27 @@ class Learner(Protocol):
 
 
 def default_row(transition: dict) -> dict:
-    """obs, action, reward, next_obs and whether the next state is terminal (not a time-limit cut)."""
+    """obs, action, reward, next_obs, whether the next state is terminal (the task solved, not a
+    time-limit cut) and whether the episode ended (``done``, which stops an n-step return)."""
     return {"obs": transition["obs"], "action": transition["action"], "reward": transition["reward"],
-            "next_obs": transition["next_obs"], "terminal": transition["info"]["terminated"]}
+            "next_obs": transition["next_obs"], "terminal": transition["info"]["terminated"],
+            "done": transition["done"]}
 
 
-def one_step_target(cfg: DQNConfig, per_row_gamma: bool = False):
-    """The DQN / Double-DQN target (``cfg.double_dqn``) as a function of a replay batch.
+def one_step_target(cfg: DQNConfig, valid_fn: Callable | None = None):
+    """The DQN / Double-DQN target (``cfg.double_dqn``) r + discount * max_a q_t[a] of a replay batch.
 
-    Bootstraps through time-limit truncations: only ``terminal`` (the task solved) stops it. With
-    ``per_row_gamma`` the discount is each row's ``gamma`` (tasks with their own discount), else cfg.gamma.
+    ``reward``/``discount``/``next_obs`` are the batch's (n-step) return, bootstrap discount and
+    observation (``replay.sample_returns``): bootstraps through time-limit truncations, only
+    ``terminal`` (the task solved) stops it. ``valid_fn(next_obs) -> bool[A]``: the max ranges over
+    the actions valid there (None: all).
     """
 
     def target(batch, q_t_target, q_t_online):
-        gamma = batch["gamma"] if per_row_gamma else cfg.gamma
-        discount_t = gamma * (1.0 - batch["terminal"].astype(jnp.float32))
+        valid_t = None if valid_fn is None else jax.vmap(valid_fn)(batch["next_obs"].astype(jnp.float32))
         if cfg.double_dqn:
-            return double_q_learning_target(batch["reward"], discount_t, q_t_target, q_t_online)
-        return q_learning_target(batch["reward"], discount_t, q_t_target)
+            return double_q_learning_target(batch["reward"], batch["discount"], q_t_target, q_t_online, valid_t)
+        return q_learning_target(batch["reward"], batch["discount"], q_t_target, valid_t)
 
     return target
 

@@ -4,8 +4,13 @@ Target rules are small pure functions of named tensors (rlax style: ``_tm1`` is 
 was taken in, ``_t`` the step after). A learner picks its rule by passing a ``target_fn`` to
 ``DQN``; the replay, the loss, the optimizer and the target network are shared.
 
-Sources: Mnih et al. 2015 (DQN, target network); van Hasselt et al. 2016 (Double DQN);
-Sutton, Precup and Singh 1999, eq. 8 (SMDP Q-learning over options: discount gamma^k).
+Every target is ``r + discount * max_a q_t[a]`` over a replay batch from ``replay.sample_returns``:
+``r`` the (n-step) return and ``discount`` its bootstrap discount, so the one-step, n-step and SMDP
+targets are one rule; they differ only in the rows (an SMDP row's own discount is gamma^k, Sutton,
+Precup and Singh 1999, eq. 8).
+
+Sources: Mnih et al. 2015 (DQN, target network); van Hasselt et al. 2016 (Double DQN); Hessel et al.
+2018 (n-step returns, Rainbow); Fedus et al. 2020 (replay ratio).
 """
 
 from __future__ import annotations
@@ -46,17 +51,6 @@ def double_q_learning_target(r_t, discount_t, q_t_value, q_t_selector, valid_t=N
         q_t_selector = jnp.where(valid_t, q_t_selector, NEG_INF)
     a_t = jnp.argmax(q_t_selector, axis=-1)
     return r_t + discount_t * jnp.take_along_axis(q_t_value, a_t[:, None], axis=-1)[:, 0]
-
-
-def smdp_q_learning_target(r_sum_t, k_t, terminal_t, gamma: float, q_t, valid_t) -> jax.Array:
-    """SMDP target over options (Sutton et al. 1999, eq. 8; paper Sec. IV-C).
-
-    r_sum_t float[B]: reward accumulated over the option's k_t steps, already discounted inside the
-    option (sum_i gamma^i r_{t+i}); k_t int[B] >= 1 its duration; terminal_t bool[B]; q_t float[B, A];
-    valid_t bool[B, A] the options whose initiation sets hold at the next decision.
-    """
-    discount_t = jnp.where(terminal_t, 0.0, gamma ** k_t.astype(jnp.float32))
-    return q_learning_target(r_sum_t, discount_t, q_t, valid_t)
 
 
 # -- the shared DQN machinery -----------------------------------------------------------------------
@@ -108,13 +102,25 @@ def epsilon_greedy(q: jax.Array, eps: jax.Array, u_explore: jax.Array, u_action:
 TargetFn = Callable[[dict, jax.Array, jax.Array], jax.Array]
 
 
+def learning_rate(cfg: DQNConfig):
+    """The Adam step size: ``cfg.lr``, constant or decayed to ``cfg.lr_end`` over ``cfg.lr_decay_updates``
+    gradient updates (linearly or along a cosine), then flat."""
+    if cfg.lr_schedule == "linear":
+        return optax.linear_schedule(cfg.lr, cfg.lr_end, cfg.lr_decay_updates)
+    if cfg.lr_schedule == "cosine":
+        return optax.cosine_decay_schedule(cfg.lr, cfg.lr_decay_updates, alpha=cfg.lr_end / cfg.lr)
+    return cfg.lr
+
+
 class DQN:
     """A Q-network with replay, target network and optimizer, as pure functions of a ``DQNState``.
 
     ``target_fn(batch, q_t_target, q_t_online) -> target float[B]`` states the learner's target
-    rule; ``batch`` holds the replay rows (``obs``, ``action``, ``next_obs`` and whatever the learner
-    stored). Observations are stored as uint8 when ``binary_obs`` (the env's one-hot features):
-    4x smaller rows.
+    rule; ``batch`` holds the replay rows (``obs``, ``action`` and whatever the learner stored) with
+    ``reward``, ``discount`` and ``next_obs`` as ``replay.sample_returns`` makes them (``cfg.n_step``).
+    A row needs ``reward``, ``terminal``, ``done`` and ``next_obs``; its ``gamma`` defaults to
+    ``cfg.gamma``. Observations are stored as uint8 when ``binary_obs`` (the env's one-hot features):
+    4x smaller rows. The learning rate follows ``cfg.lr_schedule`` over gradient updates.
     """
 
     def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,
@@ -123,7 +129,7 @@ class DQN:
         self.target_fn = target_fn
         self.obs_dtype = jnp.uint8 if binary_obs else jnp.float32
         self.network = MLP(tuple(cfg.hidden), n_actions)
-        self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+        self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(learning_rate(cfg)))
 
     def q_values(self, params, obs: jax.Array) -> jax.Array:
         return self.network.apply(params, obs.astype(jnp.float32))
@@ -136,6 +142,10 @@ class DQN:
 
     def compact(self, row: dict) -> dict:
         row = dict(row)
+        if "done" not in row:
+            raise ValueError("a replay row needs 'done' (the episode ended, time limits included) for n-step "
+                             "returns not to cross episodes; see learners.default_row")
+        row.setdefault("gamma", jnp.float32(self.cfg.gamma))
         for k in ("obs", "next_obs"):
             row[k] = jnp.asarray(row[k]).astype(self.obs_dtype)
         return row
@@ -159,7 +169,7 @@ class DQN:
         ``target_fn`` overrides the learner's rule for this call: a learner whose target depends on
         other parameters (option-critic's U uses the terminations) passes a closure over them.
         """
-        batch = rb.sample(state.replay, u_sample)
+        batch = rb.sample_returns(state.replay, u_sample, self.cfg.n_step)
         grads = jax.grad(self.loss)(state.params, state.target_params, batch, target_fn or self.target_fn)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)

@@ -48,7 +48,46 @@ def can_sample(buffer: Replay, batch_size: int) -> jax.Array:
     return buffer.size >= batch_size
 
 
+def _indices(buffer: Replay, u: jax.Array) -> jax.Array:
+    return jnp.minimum((u * buffer.size).astype(jnp.int32), jnp.maximum(buffer.size - 1, 0))
+
+
 def sample(buffer: Replay, u: jax.Array):
     """Rows at indices floor(u * size), uniformly over the filled slots. ``u`` float[batch] in [0, 1)."""
-    idx = jnp.minimum((u * buffer.size).astype(jnp.int32), jnp.maximum(buffer.size - 1, 0))
+    idx = _indices(buffer, u)
     return jax.tree.map(lambda store: store[idx], buffer.rows)
+
+
+def sample_returns(buffer: Replay, u: jax.Array, n: int):
+    """Rows drawn as ``sample``, each with its n-step return (Sutton and Barto 2018, Sec. 7.1).
+
+    The rows of one learner are written in time order, so row ``i``'s successors are ``i + 1, ...``.
+    Each needs ``reward``, ``gamma`` (its own discount: gamma, or gamma^k for an SMDP step),
+    ``terminal`` (the task ended: no bootstrap), ``done`` (the episode ended, by termination or a time
+    limit) and ``next_obs``. The return runs over m <= n rows: it stops after the first row whose
+    episode ended and at the newest row written, so it never crosses into another episode::
+
+        reward   = sum_{j<m} (prod_{l<j} gamma_l) r_j
+        discount = prod_{j<m} gamma_j, times 0 if row m-1 is terminal
+        next_obs = next_obs of row m-1
+
+    A time-limit cut (done, not terminal) keeps its bootstrap from the true next observation stored
+    in that row. With n = 1 this is row i itself with discount gamma * (1 - terminal).
+    """
+    idx = _indices(buffer, u)
+    rows, cap = buffer.rows, buffer.capacity
+    batch = jax.tree.map(lambda store: store[idx], rows)
+    newer = (buffer.pos - 1 - idx) % cap  # rows written after row i
+    ret = jnp.zeros(idx.shape, jnp.float32)
+    discount = jnp.ones(idx.shape, jnp.float32)
+    alive, last = jnp.ones(idx.shape, bool), idx
+    for j in range(n):
+        k = (idx + j) % cap
+        take = alive & (j <= newer)
+        ret = jnp.where(take, ret + discount * rows["reward"][k], ret)
+        discount = jnp.where(take, discount * rows["gamma"][k] * (1.0 - rows["terminal"][k].astype(jnp.float32)),
+                             discount)
+        last = jnp.where(take, k, last)
+        alive = take & ~rows["done"][k] & ~rows["terminal"][k]
+    batch.update(reward=ret, discount=discount, next_obs=rows["next_obs"][last])
+    return batch

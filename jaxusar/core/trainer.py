@@ -84,7 +84,10 @@ class TrialState:
     test_length: jax.Array    # int32[n_tests + 1]
     test_optimal: jax.Array   # bool[n_tests + 1]
     test_solved: jax.Array    # bool[n_tests + 1]: the test terminated (task solved), at any length
+    test_start_optimal: jax.Array  # bool[n_tests + 1]: the test episode itself was optimal (from its start)
+    test_coverage: jax.Array  # float32[n_tests + 1]: fraction of initiation states optimal (env.coverage; else nan)
     best_params: object
+    best_coverage: jax.Array
     best_return: jax.Array
     best_length: jax.Array
     best_test: jax.Array
@@ -110,16 +113,20 @@ class Trainer:
       env: reset(key) -> (obs, state); step(key, state, action) -> (obs, state, reward, done, info),
         info["terminated"] true only when the task is solved (not at the time limit); ``horizon``.
       learner: see ``jaxusar.core.learners``.
-      cfg: TrainConfig. learning_starts, train_every: from the learner's DQNConfig.
+      cfg: TrainConfig. learning_starts, train_every, gradient_steps: from the learner's DQNConfig (every
+        ``train_every`` env steps, ``gradient_steps`` calls of ``learner.update``: a replay ratio of
+        gradient_steps / train_every updates per env step).
       optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
       min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
         updates); defaults to min(optimal_steps, horizon).
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
-                 optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None):
+                 optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None,
+                 gradient_steps: int = 1):
         self.env, self.learner, self.cfg = env, learner, cfg
         self.learning_starts, self.train_every = learning_starts, train_every
+        self.gradient_steps = int(gradient_steps)
         self.optimal_steps = int(optimal_steps)
         self.test_horizon = int(test_horizon or env.horizon)
         self.min_episode_steps = int(min_episode_steps or max(1, min(optimal_steps, env.horizon)))
@@ -132,6 +139,7 @@ class Trainer:
         self.chunk_steps = self.iters * train_every
         self.n_tests = cfg.episodes // cfg.test_every
         self.n_slots = min(self.iters, MAX_SNAPSHOT_SLOTS)
+        self.has_coverage = hasattr(env, "coverage")
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
         self._init = jax.jit(jax.vmap(self._init_trial))
 
@@ -179,14 +187,16 @@ class Trainer:
             train_return=jnp.zeros((n + 1,), jnp.float32), train_length=jnp.zeros((n + 1,), jnp.int32),
             test_return=jnp.zeros((t + 1,), jnp.float32), test_length=jnp.zeros((t + 1,), jnp.int32),
             test_optimal=jnp.zeros((t + 1,), bool), test_solved=jnp.zeros((t + 1,), bool),
-            best_params=params, best_return=jnp.full((), -jnp.inf, jnp.float32),
+            test_start_optimal=jnp.zeros((t + 1,), bool), test_coverage=jnp.full((t + 1,), jnp.nan, jnp.float32),
+            best_params=params, best_coverage=jnp.full((), -jnp.inf, jnp.float32),
+            best_return=jnp.full((), -jnp.inf, jnp.float32),
             best_length=jnp.full((), NEVER, jnp.int32), best_test=jnp.full((), NO_TEST, jnp.int32),
             first_optimal_test=jnp.full((), NEVER, jnp.int32),
         )
 
     # -- one chunk ------------------------------------------------------------------------------
     def _noise(self, trials: TrialState, chunk):
-        """This chunk's uniforms, shaped [iters, train_every, trials, ...] and [iters, trials, ...]."""
+        """This chunk's uniforms, shaped [iters, train_every, trials, ...] and [iters, gradient_steps, trials, ...]."""
 
         def per_trial(key):
             key = jax.random.fold_in(key, chunk)
@@ -194,13 +204,13 @@ class Trainer:
             act = {name: jax.random.uniform(jax.random.fold_in(k_act, i), (self.iters, self.train_every, *shape))
                    for i, (name, shape) in enumerate(sorted(self.learner.act_noise.items()))}
             act["reset_key"] = jax.random.split(k_reset, (self.iters, self.train_every))
-            upd = {name: jax.random.uniform(jax.random.fold_in(k_upd, i), (self.iters, *shape))
+            upd = {name: jax.random.uniform(jax.random.fold_in(k_upd, i), (self.iters, self.gradient_steps, *shape))
                    for i, (name, shape) in enumerate(sorted(self.learner.update_noise.items()))}
             return act, upd
 
         act, upd = jax.vmap(per_trial)(trials.key)
         act = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), act)
-        upd = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 1), upd)
+        upd = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), upd)
         return act, upd
 
     def _env_step(self, s: TrialState, noise, step) -> TrialState:
@@ -260,21 +270,41 @@ class Trainer:
                                             false, false))
         return c[3], c[4], c[7], optimal
 
+    def coverage(self, params, env_params=None) -> jax.Array:
+        """The env's exact fraction of initiation states from which the greedy policy is optimal
+        (``env.coverage``), or nan for an env without initiation states."""
+        if not self.has_coverage:
+            return jnp.full((), jnp.nan, jnp.float32)
+        greedy = lambda obs: self.learner.greedy_act(params, obs, self.learner.init_carry())[0]
+        return self.env.coverage(greedy, env_params).astype(jnp.float32)
+
     def _evaluate_slot(self, s: TrialState, j) -> TrialState:
-        """Run snapshot ``j``'s greedy test (if the slot is used); record it; keep the best params."""
+        """Run snapshot ``j``'s greedy test (if the slot is used); record it; keep the best params.
+
+        For an env with initiation states (``env.coverage``), a test is optimal when the policy is optimal
+        from every one of them, and the best params are those optimal from the most (then the best test
+        episode); else the test episode decides both."""
         test = s.snaps.test_index[j]
         params = jax.tree.map(lambda x: x[j], s.snaps.params)
         key = jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), test)
         ret, length, terminated, optimal_steps = self.greedy_episode(params, key, s.env_params)
+        cov = self.coverage(params, s.env_params)
         used = test != NO_TEST
-        optimal = used & terminated & (length <= optimal_steps + self.cfg.optimal_slack)
+        start_optimal = used & terminated & (length <= optimal_steps + self.cfg.optimal_slack)
+        optimal = used & (cov >= 1.0) if self.has_coverage else start_optimal
         idx = jnp.where(used, test, self.n_tests)
-        # best = highest return, then fewest steps; the earlier test wins a tie (slots are in test order)
-        better = used & ((ret > s.best_return) | ((ret == s.best_return) & (length < s.best_length)))
+        # best = most initiation states optimal, then highest return, then fewest steps; the earlier test
+        # wins a tie (slots are in test order)
+        c, best_c = (cov, s.best_coverage) if self.has_coverage else (jnp.zeros(()), jnp.zeros(()))
+        better = used & ((c > best_c) | ((c == best_c) & ((ret > s.best_return) |
+                                                          ((ret == s.best_return) & (length < s.best_length)))))
         return s.replace(
             test_return=s.test_return.at[idx].set(ret), test_length=s.test_length.at[idx].set(length),
             test_optimal=s.test_optimal.at[idx].set(optimal), test_solved=s.test_solved.at[idx].set(used & terminated),
+            test_start_optimal=s.test_start_optimal.at[idx].set(start_optimal),
+            test_coverage=s.test_coverage.at[idx].set(cov),
             best_params=jax.tree.map(lambda new, old: jnp.where(better, new, old), params, s.best_params),
+            best_coverage=jnp.where(better, cov, s.best_coverage),
             best_return=jnp.where(better, ret, s.best_return),
             best_length=jnp.where(better, length, s.best_length),
             best_test=jnp.where(better, test, s.best_test),
@@ -294,6 +324,11 @@ class Trainer:
         return trials.replace(snaps=Snapshots(snaps.params, jnp.full_like(snaps.test_index, NO_TEST),
                                               jnp.zeros_like(snaps.count)))
 
+    def _learn(self, learner, noise):
+        """``gradient_steps`` updates of every trial's learner, one per slice of ``noise``."""
+        step = lambda l, u: (jax.vmap(self.learner.update)(l, u), None)
+        return jax.lax.scan(step, learner, noise)[0]
+
     def _run_chunk(self, state: TrainState) -> TrainState:
         act_noise, upd_noise = self._noise(state.trials, state.chunk)
         vstep = jax.vmap(self._env_step, in_axes=(0, 0, None))
@@ -311,8 +346,7 @@ class Trainer:
                                   jax.vmap(self._snapshot), lambda t: t, trials)
             # one snapshot per trial per iteration at most (checked in __init__), so none is ever lost
             trials = jax.lax.cond(jnp.max(trials.snaps.count) >= self.n_slots, self._evaluate, lambda t: t, trials)
-            learner = jax.lax.cond(step >= self.learning_starts, jax.vmap(self.learner.update),
-                                   lambda l, _: l, trials.learner, upd)
+            learner = jax.lax.cond(step >= self.learning_starts, self._learn, lambda l, _: l, trials.learner, upd)
             return (trials.replace(learner=learner), step), None
 
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
@@ -384,13 +418,16 @@ class Trainer:
         first = np.asarray(t.first_optimal_test)
         eto = [None if f == NEVER else int((f + 1) * self.cfg.test_every) for f in first]
         solved = t.test_solved[:, :nt]
-        ets = [int((np.argmax(row) + 1) * self.cfg.test_every) if row.any() else None for row in solved]
+        first_test = lambda rows: [int((np.argmax(row) + 1) * self.cfg.test_every) if row.any() else None
+                                   for row in rows]
         return {
             "train_return": t.train_return[:, :n], "train_length": t.train_length[:, :n],
             "test_return": t.test_return[:, :nt], "test_length": t.test_length[:, :nt],
             "test_optimal": t.test_optimal[:, :nt], "test_solved": solved,
             "test_episode": (np.arange(nt) + 1) * self.cfg.test_every,
             "best_return": t.best_return, "best_length": t.best_length, "best_test": t.best_test,
-            "best_params": t.best_params, "env_steps": t.env_steps,
-            "episodes_to_optimal": eto, "episodes_to_solved": ets,
+            "test_start_optimal": t.test_start_optimal[:, :nt], "test_coverage": t.test_coverage[:, :nt],
+            "best_params": t.best_params, "best_coverage": t.best_coverage, "env_steps": t.env_steps,
+            "episodes_to_optimal": eto, "episodes_to_solved": first_test(solved),
+            "episodes_to_start_optimal": first_test(t.test_start_optimal[:, :nt]),
         }

@@ -38,7 +38,7 @@ from jaxusar.experiments.train import environment_info, stage_seconds, summarize
 def build(cfg: ExperimentConfig):
     env = envs.make(cfg.env.map, **cfg.env.overrides())
     options = options_from_graph(env.graph)
-    tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start)
+    tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start, cfg.hierarchical.navigate_start)
     params = sp.task_params(env, options, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
     senv = sp.SubtaskEnv(env, env.horizon)
     sub_learner = sp.make_learner(senv.obs_dim, cfg.dqn)
@@ -46,7 +46,7 @@ def build(cfg: ExperimentConfig):
     min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
                         enumerate(t.starts for t in tasks)))
     sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
-                          train_every=cfg.dqn.train_every, optimal_steps=0, min_episode_steps=max(min_steps, 1))
+                          train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0, min_episode_steps=max(min_steps, 1))
     policy_for = np.full((env.n_agents, options.n), -1, np.int32)
     for k, t in enumerate(tasks):
         agents = [t.agent] if t.agent >= 0 else range(env.n_agents)
@@ -62,6 +62,7 @@ def build(cfg: ExperimentConfig):
                               optimal_slack=cfg.train.optimal_slack)
     optimal = planning.optimal_team_steps(env)
     coord_trainer = Trainer(macro, coord_learner, coord_train, learning_starts=c.learning_starts, train_every=1,
+                            gradient_steps=c.gradient_steps,
                             optimal_steps=optimal, min_episode_steps=1, test_horizon=env.horizon)
     return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
                 sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,

@@ -86,7 +86,7 @@ def build(cfg: ExperimentConfig):
     optimal = planning.optimal_team_steps(env)
     learner = algorithm_module(cfg.algo).make_learner(env, cfg.dqn)
     trainer = Trainer(env, learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
-                      train_every=cfg.dqn.train_every, optimal_steps=optimal)
+                      train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=optimal)
     return env, optimal, learner, trainer
 
 
