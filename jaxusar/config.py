@@ -75,6 +75,8 @@ class DQNConfig:
     gradient_steps: int = _field(1, _positive, "gradient updates per learning step, >= 1 (replay ratio = "
                                  "gradient_steps / train_every updates per env step)")
     n_step: int = _field(1, _positive, "steps of the return before bootstrapping, >= 1 (cut at episode ends)")
+    reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning (Q is "
+                                 "learned in scaled units; the greedy policy is unchanged)")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")
     tau: float = _field(1.0, lambda t: 0 < t <= 1, "in (0, 1]: 1 = hard copy every target_update_every; "
                         "< 1 = Polyak averaging each update")
@@ -133,6 +135,7 @@ class CoordinatorConfig:
     target_update_every: int = _field(20, _positive)
     gradient_steps: int = _field(1, _positive, "gradient updates per decision, >= 1")
     n_step: int = _field(1, _positive, "decisions (options) of the return before bootstrapping, >= 1")
+    reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning")
     eps_start: float = _field(1.0, _unit_interval)
     eps_end: float = _field(0.05, _unit_interval)
     eps_decay_steps: int = _field(200, _positive, "decisions of the linear epsilon decay")
@@ -150,6 +153,9 @@ class HierarchicalConfig:
         {"TRIAGE-BOTTOM-VICTIM": 0.9}, lambda d: all(0 < g <= 1 for g in d.values()), "per-task discount overriding dqn.gamma (paper Fig. 4f)")
     triage_start: str = _field("room", lambda s: s in ("room", "entry"),
                                "triage tasks start anywhere in the room, or at its entry cells")
+    subpolicy_features: str = _field("factored", lambda s: s in ("factored", "cell"),
+                                     "a sub-policy's input: one-hot row, col and facing (factored), or the "
+                                     "same plus a one-hot of the cell (cell)")
     navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
                                  "navigation tasks start half at the medic's start and half anywhere in the "
                                  "initiation set (mixed), or anywhere in it (initiation)")

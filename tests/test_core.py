@@ -279,6 +279,59 @@ def test_config_errors_name_the_key(sets, match):
         config.load(sets=sets)
 
 
+@pytest.mark.parametrize("sets, match", [
+    (["dqn.n_step=0"], r"dqn.n_step=0 is out of range \(.*>= 1"),
+    (["dqn.gradient_steps=0"], r"dqn.gradient_steps=0 is out of range \(.*>= 1"),
+    (["dqn.train_every=0"], r"dqn.train_every=0 is out of range \(.*>= 1"),
+    (["dqn.tau=0"], r"dqn.tau=0.0 is out of range \(in \(0, 1\]"),
+    (["dqn.tau=1.5"], r"dqn.tau=1.5 is out of range \(in \(0, 1\]"),
+    (["dqn.reward_scale=0"], r"dqn.reward_scale=0.0 is out of range \(> 0"),
+    (["dqn.reward_scale=-1"], r"dqn.reward_scale=-1.0 is out of range"),
+    (["dqn.lr=0"], r"dqn.lr=0.0 is out of range \(Adam learning rate, > 0"),
+    (["dqn.lr_schedule=step"], r"dqn.lr_schedule='step' is out of range \(constant, linear or cosine"),
+    (["dqn.lr_decay_updates=0"], r"dqn.lr_decay_updates=0 is out of range"),
+    (["dqn.lr_schedule=linear", "dqn.lr_end=0.1"], r"dqn.lr_end=0.1 is above dqn.lr=0.0005.*\(0, lr\]"),
+    (["hierarchical.coordinator.n_step=0"], r"hierarchical.coordinator.n_step=0 is out of range"),
+    (["hierarchical.coordinator.gradient_steps=0"], r"hierarchical.coordinator.gradient_steps=0 is out of range"),
+    (["hierarchical.subpolicy_features=pixels"], r"hierarchical.subpolicy_features='pixels' is out of range"),
+    (["hierarchical.navigate_start=anywhere"], r"hierarchical.navigate_start='anywhere' is out of range"),
+])
+def test_new_core_options_are_checked_before_anything_compiles(sets, match):
+    """Each sample-efficiency option: an error naming the key, the value and the valid range."""
+    with pytest.raises(ConfigError, match=match):
+        config.load(sets=sets)
+
+
+def test_option_critic_refuses_n_step_returns():
+    from jaxusar.algos import option_critic
+
+    with pytest.raises(ConfigError, match="dqn.n_step=3.*use dqn.n_step=1"):
+        option_critic.make_learner(tiny_env(), DQNConfig(n_step=3))
+
+
+def test_lr_schedules_decay_to_lr_end():
+    for kind in ("linear", "cosine"):
+        sched = ql.learning_rate(DQNConfig(lr=1e-3, lr_schedule=kind, lr_end=1e-4, lr_decay_updates=100))
+        assert float(sched(0)) == pytest.approx(1e-3) and float(sched(100)) == pytest.approx(1e-4)
+        assert float(sched(1000)) == pytest.approx(1e-4) and 1e-4 < float(sched(50)) < 1e-3
+    assert ql.learning_rate(DQNConfig(lr=1e-3)) == 1e-3
+
+
+def test_gradient_steps_make_that_many_updates_per_learning_step():
+    env = tiny_env()
+    counts = []
+    for g in (1, 3):
+        cfg = DQNConfig(hidden=(8,), batch_size=4, learning_starts=0, train_every=2, gradient_steps=g)
+        trainer = Trainer(env, iql.make_learner(env, cfg), TrainConfig(episodes=2, test_every=1, chunk_steps=40),
+                          learning_starts=0, train_every=2, gradient_steps=g, optimal_steps=4)
+        state = trainer.init(jax.random.split(jax.random.PRNGKey(0), 2))
+        trainer.compile(state)
+        state = trainer.run_chunk(state)
+        counts.append(np.asarray(state.trials.learner.updates))
+    np.testing.assert_array_equal(counts[1], 3 * counts[0])
+    assert counts[0].min() == 20  # 40 env steps, a learning step every 2
+
+
 def test_config_file_errors(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("train:\n  episodes: 10\n  speed: 3\n")

@@ -173,7 +173,7 @@ def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
     np.testing.assert_allclose(float(row["gamma"]), 0.95 ** 3, rtol=1e-6)
 
 
-def _oracle_coordinator(episodes=60, trials=2, **overrides):
+def _oracle_coordinator(episodes=60, trials=2, seed=0, **overrides):
     """The coordinator trained over exact ("oracle") sub-policies: argmin of the planner's distances."""
     env, opts = envs.make("two_rooms", horizon=300), None
     opts = options_from_graph(env.graph)
@@ -215,8 +215,8 @@ def _oracle_coordinator(episodes=60, trials=2, **overrides):
 
     tc = config.TrainConfig(episodes=episodes, test_every=1, chunk_steps=64)
     trainer = Trainer(macro, learner, tc, learning_starts=cfg.learning_starts, train_every=1, optimal_steps=18,
-                      min_episode_steps=1)
-    keys = jax.random.split(jax.random.PRNGKey(0), trials)
+                      min_episode_steps=1, gradient_steps=cfg.gradient_steps)
+    keys = jax.random.split(jax.random.PRNGKey(seed), trials)
     sub_b = jax.tree.map(lambda x: jnp.broadcast_to(x, (trials, *x.shape)), sub)
     state = trainer.train(keys, env_params=coord.CoordinatorParams(subpolicy=sub_b))
     return env, macro, learner, trainer.results(state), sub
@@ -235,3 +235,46 @@ def test_coordinator_learns_the_papers_assignment_with_exact_subpolicies():
         assert [macro.options.names[o] for o in macro.joint[first]] == ["NAVIGATE-TO-BOTTOM-ROOM",
                                                                         "NAVIGATE-TO-TOP-ROOM"]
         assert res["best_return"][k] == 200.0 and res["best_length"][k] == 18
+
+
+def _policy_tables(env, params, k, noise: float, seed: int):
+    """An action table int[H, W, 4] for task k: a shortest-path action everywhere, replaced by a random
+    action in a ``noise`` fraction of the states; and the numpy successor tables to roll it out."""
+    nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
+                                                                            jnp.asarray(params.victim_at[k])))
+    dist = params.dist[k]
+    after = np.where(hit, -1, dist[nxt[..., 0], nxt[..., 1], nxt[..., 2]])
+    table = np.argmin(np.where(after == -1, -1, np.where(after < 0, 10_000, after)), -1)
+    rng = np.random.default_rng(seed)
+    flip = rng.random(table.shape) < noise
+    return np.where(flip, rng.integers(0, 4, table.shape), table), nxt, hit
+
+
+@pytest.mark.parametrize("k,noise", [(0, 0.0), (2, 0.05), (3, 0.2), (4, 0.1), (5, 0.3)])
+def test_coverage_equals_a_rollout_from_every_initiation_state(two_rooms, k, noise):
+    """SubtaskEnv.coverage (one batched fixed point) against a plain rollout from each initiation state:
+    a state counts when the rollout reaches the sub-goal in exactly the planner's distance."""
+    env, opts = two_rooms
+    tasks = sp.make_tasks(env, opts)
+    params = sp.task_params(env, opts, tasks, 0.99, {})
+    senv = sp.SubtaskEnv(env, env.horizon)
+    table, nxt, hit = _policy_tables(env, params, k, noise, seed=k)
+    h, w = env.height, env.width
+    goal = int(params.goal_region[k])
+
+    def greedy(obs):
+        r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
+        return jnp.asarray(table)[r, c, d].reshape(1)
+
+    good = 0
+    for r, c, d in tasks[k].initiation:
+        s, steps, done = (r, c, d), 0, False
+        while not done and steps <= 60:
+            a = table[s]
+            done = bool(hit[s][a]) or (goal >= 0 and env.graph.cell_region[tuple(nxt[s][a][:2])] == goal)
+            s, steps = tuple(nxt[s][a]), steps + 1
+        good += done and steps == params.dist[k][r, c, d]
+    p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+    got = float(jax.jit(senv.coverage, static_argnums=0)(greedy, p))
+    assert got == pytest.approx(good / len(tasks[k].initiation), abs=1e-6)
+    assert (got == 1.0) == (noise == 0.0)  # exact everywhere, and the noisy tables miss some states

@@ -158,7 +158,7 @@ class MacroEnv:
 def coordinator_dqn(cfg: CoordinatorConfig) -> DQNConfig:
     return DQNConfig(hidden=cfg.hidden, lr=cfg.lr, gamma=cfg.gamma, batch_size=cfg.batch_size,
                      buffer_capacity=cfg.buffer_capacity, learning_starts=cfg.learning_starts, train_every=1,
-                     gradient_steps=cfg.gradient_steps, n_step=cfg.n_step,
+                     gradient_steps=cfg.gradient_steps, n_step=cfg.n_step, reward_scale=cfg.reward_scale,
                      target_update_every=cfg.target_update_every, eps_start=cfg.eps_start, eps_end=cfg.eps_end,
                      eps_decay_steps=cfg.eps_decay_steps, double_dqn=False)
 

@@ -119,7 +119,7 @@ class DQN:
     rule; ``batch`` holds the replay rows (``obs``, ``action`` and whatever the learner stored) with
     ``reward``, ``discount`` and ``next_obs`` as ``replay.sample_returns`` makes them (``cfg.n_step``).
     A row needs ``reward``, ``terminal``, ``done`` and ``next_obs``; its ``gamma`` defaults to
-    ``cfg.gamma``. Observations are stored as uint8 when ``binary_obs`` (the env's one-hot features):
+    ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. Observations are stored as uint8 when ``binary_obs`` (the env's one-hot features):
     4x smaller rows. The learning rate follows ``cfg.lr_schedule`` over gradient updates.
     """
 
@@ -146,6 +146,8 @@ class DQN:
             raise ValueError("a replay row needs 'done' (the episode ended, time limits included) for n-step "
                              "returns not to cross episodes; see learners.default_row")
         row.setdefault("gamma", jnp.float32(self.cfg.gamma))
+        if self.cfg.reward_scale != 1.0:
+            row["reward"] = row["reward"] * self.cfg.reward_scale
         for k in ("obs", "next_obs"):
             row[k] = jnp.asarray(row[k]).astype(self.obs_dtype)
         return row

@@ -6,7 +6,9 @@ Output folder::
     metrics.json          episodes_to_optimal per trial (= sub-policy sum + coordinator, as Table II counts
                           them), the two parts, the per-task counts, the max over tasks (they train
                           concurrently), compile and run seconds per stage, config, versions
-    curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal
+    curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal,
+                          start_optimal (the test episode from its start), coverage (sub-policies: the
+                          fraction of initiation states from which the greedy policy is optimal)
     fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials; and
     fig4_<task>.png       the same for each sub-policy alone
     coordinator.png       the coordinator's train and test curves
@@ -40,7 +42,7 @@ def build(cfg: ExperimentConfig):
     options = options_from_graph(env.graph)
     tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start, cfg.hierarchical.navigate_start)
     params = sp.task_params(env, options, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
-    senv = sp.SubtaskEnv(env, env.horizon)
+    senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features)
     sub_learner = sp.make_learner(senv.obs_dim, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
     min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
@@ -102,29 +104,37 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
 
 
 def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, optimal: np.ndarray):
-    """Paper Fig. 4: per task, train steps (moving average) and test steps vs episodes, band over trials."""
+    """Paper Fig. 4: per task, train steps (moving average) and test steps vs episodes, band over trials,
+    and beside them the fraction of the option's initiation states from which the greedy policy is optimal."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(names)
-    fig, axes = plt.subplots(n, 2, figsize=(11, 2.3 * n), squeeze=False)
+    fig, axes = plt.subplots(n, 3, figsize=(15, 2.4 * n), squeeze=False)
     for k, name in enumerate(names):
         tl, tel = results["train_length"][k], results["test_length"][k]  # [trials, episodes]
         band(axes[k, 0], np.arange(1, tl.shape[1] + 1), smooth(tl, 10))
         band(axes[k, 1], results["test_episode"], tel)
-        for ax, what in zip(axes[k], ("train steps (moving avg 10)", "greedy test steps")):
+        band(axes[k, 2], results["test_episode"], 100 * results["test_coverage"][k], color="tab:purple")
+        for ax, what in zip(axes[k, :2], ("train steps (moving avg 10)", "greedy test steps (from the start)")):
             ax.axhline(horizon, color="grey", ls=":", lw=1)
             if optimal[k] >= 0:
                 ax.axhline(optimal[k], color="green", ls="--", lw=1)
             ax.set_title(f"{name}: {what}", fontsize=9)
             ax.set_ylim(0, horizon * 1.05)
+            ax.set_ylabel("steps")
+        axes[k, 2].set_title(f"{name}: initiation states optimal", fontsize=9)
+        axes[k, 2].set_ylim(0, 102)
+        axes[k, 2].axhline(100, color="green", ls="--", lw=1)
+        axes[k, 2].set_ylabel("% of states")
+        for ax in axes[k]:
             ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("training episodes")
-    fig.suptitle(f"Sub-policies on pseudo-rewards (mean of {tl.shape[0]} trials; band 25-75th pct; "
-                 "dashed: optimal from the test start (fixed starts) ; dotted: horizon)", fontsize=10)
+    fig.suptitle(f"Sub-policies on pseudo-rewards (line: mean of {tl.shape[0]} trials; band: 25-75th percentile; "
+                 "faint: min-max; dashed: optimal; dotted: horizon)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -159,11 +169,13 @@ class Experiment:
         sub, co = dict(sub_o.results), co_o.results
         trials = co["train_return"].shape[0]
         eto_lanes, test_episode = sub.pop("episodes_to_optimal"), sub.pop("test_episode")
+        start_lanes = sub.pop("episodes_to_start_optimal")
         sub.pop("episodes_to_solved")
         best_sub = self._by_trial(sub["best_params"])  # [trial, task, ...]
         sub = {**jax.tree.map(lambda a: np.swapaxes(np.asarray(self._by_trial(a)), 0, 1), sub),
                "test_episode": test_episode}  # [task, trial, ...]
-        sub_eto = [[eto_lanes[j * n_tasks + k] for j in range(trials)] for k in range(n_tasks)]
+        by_task = lambda lanes: [[lanes[j * n_tasks + k] for j in range(trials)] for k in range(n_tasks)]
+        sub_eto, sub_start = by_task(eto_lanes), by_task(start_lanes)
 
         per_trial = []
         for j in range(trials):
@@ -180,6 +192,12 @@ class Experiment:
             "subpolicy_episodes_to_optimal": {"sum": [p["subpolicies_sum"] for p in per_trial],
                                               "max": [p["subpolicies_max"] for p in per_trial],
                                               "per_task": {t.name: sub_eto[k] for k, t in enumerate(tasks)}},
+            # the paper's single-start test: the greedy episode from the test start takes the shortest path
+            "subpolicy_episodes_to_start_optimal": {t.name: sub_start[k] for k, t in enumerate(tasks)},
+            # the kept params: the fraction of the option's initiation states from which they are optimal
+            "subpolicy_coverage": {t.name: [round(float(c), 6) for c in sub["best_coverage"][k]]
+                                   for k, t in enumerate(tasks)},
+            "subpolicy_initiation_states": {t.name: len(t.initiation) for t in tasks},
             "coordinator_episodes_to_optimal": co["episodes_to_optimal"],
             "coordinator_episodes_to_solved": co["episodes_to_solved"],
             "coordinator_summary": summarize(co["episodes_to_optimal"]),
@@ -202,15 +220,18 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     trials = co["train_return"].shape[0]
     with open(out / "curves.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["stage", "task", "trial", "kind", "episode", "return", "steps", "optimal"])
+        w.writerow(["stage", "task", "trial", "kind", "episode", "return", "steps", "optimal", "start_optimal",
+                    "coverage"])
         stages = [("subpolicy", t.name, {**{n: v[k] for n, v in sub.items() if n not in ("test_episode", "best_params")},
                                          "test_episode": sub["test_episode"]}) for k, t in enumerate(tasks)]
         for stage, name, r in stages + [("coordinator", "coordinator", co)]:
             for j in range(trials):
                 for i, (ret, st) in enumerate(zip(r["train_return"][j], r["train_length"][j])):
-                    w.writerow([stage, name, j, "train", i + 1, float(ret), int(st), ""])
-                for e, ret, st, o in zip(r["test_episode"], r["test_return"][j], r["test_length"][j], r["test_optimal"][j]):
-                    w.writerow([stage, name, j, "test", int(e), float(ret), int(st), int(o)])
+                    w.writerow([stage, name, j, "train", i + 1, float(ret), int(st), "", "", ""])
+                for e, ret, st, o, so, c in zip(r["test_episode"], r["test_return"][j], r["test_length"][j],
+                                                r["test_optimal"][j], r["test_start_optimal"][j], r["test_coverage"][j]):
+                    w.writerow([stage, name, j, "test", int(e), float(ret), int(st), int(o), int(so),
+                                "" if np.isnan(c) else round(float(c), 6)])
     (out / "params").mkdir(exist_ok=True)
     for j in range(trials):
         blob = {"subpolicies": jax.tree.map(lambda x: np.asarray(x[j]), best_sub),
@@ -222,7 +243,7 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     names = [t.name for t in tasks]
     subpolicy_figure(sub, names, out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
     for k, name in enumerate(names):  # and one figure per sub-policy, as the paper's Fig. 4 panels
-        one = {**{n: v[k:k + 1] for n, v in sub.items() if n in ("train_length", "test_length")},
+        one = {**{n: v[k:k + 1] for n, v in sub.items() if n in ("train_length", "test_length", "test_coverage")},
                "test_episode": sub["test_episode"]}
         subpolicy_figure(one, [name], out / f"fig4_{name.replace(':', '_').lower()}.png", env.horizon,
                          np.asarray(opt[k:k + 1]))
