@@ -1,101 +1,100 @@
-"""Ablation of the shared DQN core on the paper's method: which sample-efficiency settings earn their place.
+"""Ablation of the shared DQN core on the paper's method, on tuning seeds (the reported runs use seed 0).
 
-Each named setting is a list of ``--set`` overrides on top of ``jaxusar train hierarchical``'s defaults
-(the ladder below adds one change at a time, from the settings before this ablation to today's
-defaults, then tries alternatives beside them). Every setting trains the sub-policies and the coordinator
-on the same tuning seed (default 1000: disjoint from the reported runs, which use seed 0) and reports:
-sub-policy lanes (trials x tasks) optimal from every initiation state, the worst kept sub-policy's
-coverage, the coordinator's and the end-to-end trials optimal, median episodes, and wall seconds
-(compilation included; run them one at a time on a quiet machine for times to compare).
+Two parts of the method are tuned separately, each with the measure that predicts the team:
 
-    python benchmarks/ablation.py                      # every setting, seed 1000, 8 trials
-    python benchmarks/ablation.py --only defaults "n_step 1" --trials 8 --seed 1000
+* ``subpolicies``: trains every sub-policy (all tasks x trials, the first stage of ``jaxusar train
+  hierarchical``) and reports per task the episodes to optimal from every initiation state, the paper's
+  single-start episodes to optimal, and the kept params' coverage (the fraction of initiation states
+  from which the greedy policy is optimal), plus wall seconds and env steps per lane.
+* ``coordinator``: trains the coordinator over exact sub-policies (the planner's distance tables), so
+  its own learning is measured apart from the sub-policies' errors; reports trials optimal and the median
+  episodes to optimal within 100 episodes.
+
+Settings are ``--set`` overrides on the defaults of ``jaxusar train hierarchical`` (``dqn.*``,
+``hierarchical.*``) or of the coordinator (``reward_scale=0.01 gradient_steps=8``: CoordinatorConfig keys)::
+
+    python benchmarks/ablation.py subpolicies --seed 1000 --trials 8 --set dqn.n_step=1
+    python benchmarks/ablation.py coordinator --seed 1000 --trials 16 --set gradient_steps=1
+
+Each run appends its numbers to ``benchmarks/results/ablation.jsonl`` with the settings and the CPU.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import tempfile
+import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+import yaml
 
 from jaxusar import config
 from jaxusar.algos import coordinator as coord
-from jaxusar.experiments import train
+from jaxusar.experiments import hierarchical
+from jaxusar.experiments.train import cpu_name
 
-BEFORE = ["hierarchical.subpolicy_features=factored", "hierarchical.navigate_start=mixed", "dqn.reward_scale=1.0",
-          "dqn.n_step=1", "dqn.train_every=4", "dqn.gradient_steps=1", "dqn.lr=0.0005", "dqn.lr_schedule=constant",
-          "hierarchical.coordinator.reward_scale=1.0", "hierarchical.coordinator.n_step=1",
-          "hierarchical.coordinator.gradient_steps=1"]
-
-SETTINGS = {
-    "before (previous defaults)": BEFORE,
-    "defaults": [],
-}
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_setting(sets: list[str], seed: int, trials: int) -> dict:
+def subpolicies(seed: int, trials: int, sets: list[str]) -> dict:
     cfg = config.load(None, sets + [f"seed={seed}"], defaults={"algo": "hierarchical", **coord.DEFAULTS})
-    with tempfile.TemporaryDirectory() as out:
-        start = time.perf_counter()
-        m = train.run(cfg, trials, Path(out) / "run", quiet=True)
-        wall = time.perf_counter() - start
-    per_task = m["subpolicy_episodes_to_optimal"]["per_task"]
-    lanes = [e for eto in per_task.values() for e in eto]
-    cov = [c for cs in m["subpolicy_coverage"].values() for c in cs]
-    sums = m["subpolicy_episodes_to_optimal"]["sum"]
-    med = lambda xs: None if sum(x is None for x in xs) * 2 >= len(xs) else float(np.median(
-        [np.inf if x is None else x for x in xs]))
-    return {"sets": sets, "seed": seed, "trials": trials, "wall_seconds": round(wall, 1),
-            "subpolicy_lanes_optimal": sum(e is not None for e in lanes), "subpolicy_lanes": len(lanes),
-            "worst_coverage": min(cov), "mean_coverage": float(np.mean(cov)),
-            "subpolicy_sum_median": med(sums),
-            "coordinator_optimal": sum(e is not None for e in m["coordinator_episodes_to_optimal"]),
-            "coordinator_median": med(m["coordinator_episodes_to_optimal"]),
-            "end_to_end_optimal": sum(e is not None for e in m["episodes_to_optimal"]),
-            "end_to_end_median": med(m["episodes_to_optimal"]),
-            "episodes_to_optimal": m["episodes_to_optimal"]}
+    exp = hierarchical.Experiment(cfg, jax.random.split(jax.random.PRNGKey(seed), trials))
+    stage = exp.chains[0][0]
+    start = time.perf_counter()
+    state = stage.trainer.train(stage.keys, env_params=stage.env_params)
+    r = stage.trainer.results(jax.block_until_ready(state))
+    wall = time.perf_counter() - start
+    names = [t.name for t in exp.b["tasks"]]
+    lanes = lambda xs: np.array([np.nan if x is None else x for x in xs], float).reshape(trials, len(names))  # noqa: E731
+    eto, start_eto = lanes(r["episodes_to_optimal"]), lanes(r["episodes_to_start_optimal"])
+    cov = np.asarray(r["best_coverage"]).reshape(trials, len(names))
+    sums = np.where(np.isnan(eto).any(1), np.nan, np.nansum(eto, 1))
+    med = lambda x: None if np.isnan(x).sum() * 2 >= len(x) else float(np.median(np.where(np.isnan(x), np.inf, x)))  # noqa: E731
+    return {
+        "per_task": {n: {"trials_optimal": int((~np.isnan(eto[:, k])).sum()), "median": med(eto[:, k]),
+                         "start_trials_optimal": int((~np.isnan(start_eto[:, k])).sum()),
+                         "start_median": med(start_eto[:, k]),
+                         "coverage_worst": float(cov[:, k].min()), "coverage_mean": float(cov[:, k].mean())}
+                     for k, n in enumerate(names)},
+        "trials_all_optimal": int((~np.isnan(sums)).sum()), "sum_median": med(sums),
+        "coverage_worst": float(cov.min()), "wall_seconds": round(wall, 1),
+        "env_steps_per_lane": float(np.mean(r["env_steps"])),
+    }
 
 
-def table(rows: dict) -> str:
-    show = lambda x: "never" if x is None else f"{x:,.0f}"  # noqa: E731
-    lines = ["| setting | sub-policies optimal everywhere (lanes) | kept coverage: worst / mean | median sub-policy "
-             "sum | coordinator optimal, median | end to end optimal, median | wall s |",
-             "|---|---|---|---|---|---|---|"]
-    for name, r in rows.items():
-        t = r["trials"]
-        lines.append(f"| {name} | {r['subpolicy_lanes_optimal']}/{r['subpolicy_lanes']} | {r['worst_coverage']:.1%} / "
-                     f"{r['mean_coverage']:.1%} | {show(r['subpolicy_sum_median'])} | {r['coordinator_optimal']}/{t}, "
-                     f"{show(r['coordinator_median'])} | {r['end_to_end_optimal']}/{t}, {show(r['end_to_end_median'])} "
-                     f"| {r['wall_seconds']:.0f} |")
-    return "\n".join(lines)
+def coordinator(seed: int, trials: int, sets: list[str]) -> dict:
+    sys.path.insert(0, str(ROOT))
+    from tests.test_hierarchical import _oracle_coordinator  # the exact sub-policies the tests use
+
+    overrides = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in sets)}
+    start = time.perf_counter()
+    res = _oracle_coordinator(episodes=100, trials=trials, seed=seed, **overrides)[3]
+    eto = res["episodes_to_optimal"]
+    x = np.array([np.inf if e is None else e for e in eto])
+    return {"trials_optimal": int(np.isfinite(x).sum()), "median": float(np.median(x)), "episodes_to_optimal": eto,
+            "wall_seconds": round(time.perf_counter() - start, 1)}
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=1000, help="tuning seed (the reported runs use 0)")
+    ap.add_argument("part", choices=["subpolicies", "coordinator"])
+    ap.add_argument("--seed", type=int, default=1000, help="a tuning seed (the reported runs use 0)")
     ap.add_argument("--trials", type=int, default=8)
-    ap.add_argument("--only", nargs="*", help="names of settings to run (default: all)")
-    ap.add_argument("--out", default="benchmarks/results/ablation.json", help="JSON file, merged by setting name")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks/results/ablation.jsonl"))
     args = ap.parse_args(argv)
-    names = args.only or list(SETTINGS)
-    unknown = [n for n in names if n not in SETTINGS]
-    if unknown:
-        ap.error(f"unknown setting(s) {unknown}; known: {list(SETTINGS)}")
-    for n in names:  # every setting is checked before any trains
-        config.load(None, SETTINGS[n], defaults={"algo": "hierarchical", **coord.DEFAULTS})
-    out = Path(args.out)
-    rows = json.loads(out.read_text()) if out.exists() else {}
-    for n in names:
-        rows[n] = run_setting(SETTINGS[n], args.seed, args.trials)
-        rows[n]["machine"] = train.cpu_name()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(rows, indent=2))
-        print(f"{n}: {json.dumps({k: v for k, v in rows[n].items() if k != 'sets'})}", flush=True)
-    print(table({n: rows[n] for n in SETTINGS if n in rows}))
+    if args.seed == 0:
+        ap.error("--seed 0 is the reported runs' seed; tune on others (e.g. 1000)")
+    run = subpolicies if args.part == "subpolicies" else coordinator
+    row = {"part": args.part, "sets": args.sets, "seed": args.seed, "trials": args.trials, **run(args.seed, args.trials, args.sets),
+           "machine": cpu_name(), "jax": jax.__version__}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "a") as f:
+        f.write(json.dumps(row) + "\n")
+    print(json.dumps(row, indent=1))
 
 
 if __name__ == "__main__":

@@ -133,9 +133,11 @@ class CoordinatorConfig:
     buffer_capacity: int = _field(2_000, _positive)
     learning_starts: int = _field(16, _non_negative, "decisions before the first update")
     target_update_every: int = _field(20, _positive)
-    gradient_steps: int = _field(1, _positive, "gradient updates per decision, >= 1")
+    gradient_steps: int = _field(8, _positive, "gradient updates per decision, >= 1 (8: chosen over exact "
+                                 "sub-policies on tuning seeds, benchmarks/README.md)")
     n_step: int = _field(1, _positive, "decisions (options) of the return before bootstrapping, >= 1")
-    reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning")
+    reward_scale: float = _field(0.01, _positive, "> 0: rewards are multiplied by this before learning (0.01: "
+                                 "the +100 triage rewards become 1)")
     eps_start: float = _field(1.0, _unit_interval)
     eps_end: float = _field(0.05, _unit_interval)
     eps_decay_steps: int = _field(200, _positive, "decisions of the linear epsilon decay")
