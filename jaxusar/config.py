@@ -75,6 +75,8 @@ class DQNConfig:
     gradient_steps: int = _field(1, _positive, "gradient updates per learning step, >= 1 (replay ratio = "
                                  "gradient_steps / train_every updates per env step)")
     n_step: int = _field(1, _positive, "steps of the return before bootstrapping, >= 1 (cut at episode ends)")
+    n_step_cut_exploring: bool = _field(False, doc="n-step returns also stop before an exploring action "
+                                        "(Watkins's cut: they then estimate Q*, not the exploring policy's Q)")
     reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning (Q is "
                                  "learned in scaled units; the greedy policy is unchanged)")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")

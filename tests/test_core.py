@@ -140,6 +140,35 @@ def test_n_step_returns_hand_computed():
         assert int(b["next_obs"][0]) == last + 1 and int(b["obs"][0]) == i
 
 
+def test_n_step_returns_stop_before_an_exploring_action():
+    """With ``greedy`` flags, the return from row i never runs through a later row whose action explored
+    (row i's own action may explore: it is the one being valued)."""
+    g = 0.9
+    buf = _rows([1.0, 2.0, 4.0, 8.0], [g] * 4, [False] * 4, [False] * 4)
+    greedy = jnp.array([False, True, False, True] + [True] * 4)
+    buf = buf.replace(rows={**buf.rows, "greedy": greedy})
+    b = rb.sample_returns(buf, _at(buf, 0), 3)  # rows 0, 1; row 2 explored
+    np.testing.assert_allclose([float(b["reward"][0]), float(b["discount"][0])], [1 + g * 2, g * g], rtol=1e-6)
+    assert int(b["next_obs"][0]) == 2
+    b = rb.sample_returns(buf, _at(buf, 2), 3)  # row 2 explored itself: rows 2, 3
+    np.testing.assert_allclose(float(b["reward"][0]), 4 + g * 8, rtol=1e-6)
+
+
+def test_learners_flag_greedy_actions_for_n_step_returns():
+    env = tiny_env()
+    learner = iql.make_learner(env, DQNConfig(hidden=(8,), n_step=3, n_step_cut_exploring=True, batch_size=4,
+                                              buffer_capacity=8))
+    obs, _ = env.reset(jax.random.PRNGKey(0))
+    tr = {"obs": obs, "action": jnp.array([0, 1], jnp.int32), "reward": jnp.float32(0), "next_obs": obs,
+          "done": jnp.bool_(False), "info": {"terminated": jnp.bool_(False)}, "carry": learner.init_carry(),
+          "next_carry": learner.init_carry()}
+    st = learner.init(jax.random.PRNGKey(1), tr)
+    greedy, _ = learner.greedy_act(st.params, obs, None)
+    tr["action"] = jnp.stack([greedy[0], (greedy[1] + 1) % 4])
+    st = learner.observe(st, tr)
+    np.testing.assert_array_equal(st.replay.rows["greedy"][:, 0], [True, False])
+
+
 def test_n_step_returns_follow_the_ring_and_stop_at_the_newest_row():
     """Capacity 8, 11 rows written: the oldest kept row is 3 (slot 3); its successors wrap to slots 0-2,
     and the newest (row 10, slot 2) ends every return."""

@@ -94,11 +94,16 @@ class IndependentDQN:
         self.act_noise = {"explore": (n,), "action": (n,)}
         self.update_noise = {"sample": (n, cfg.batch_size)}
 
-    def _rows(self, transition: dict) -> dict:
-        """The shared row, broadcast to every learner, with each learner's own action."""
+    def _rows(self, transition: dict, params=None) -> dict:
+        """The shared row, broadcast to every learner, with each learner's own action and, for n-step
+        returns cut at exploring actions, whether that action was the greedy one under ``params`` (those it was chosen with)."""
         row = self.row_fn(transition)
         rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.n, *jnp.shape(x))), row)
         rows["action"] = transition["action"]
+        if self.cfg.n_step > 1 and self.cfg.n_step_cut_exploring:  # see replay.sample_returns
+            greedy = transition["action"] if params is None else \
+                self.greedy_act(params, transition["obs"], transition["carry"])[0]
+            rows["greedy"] = greedy == transition["action"]
         return rows
 
     def init(self, key, transition: dict):
@@ -121,7 +126,7 @@ class IndependentDQN:
         return jax.vmap(pick)(q, noise["explore"], noise["action"]), carry
 
     def observe(self, state, transition):
-        return jax.vmap(self.dqn.add)(state, self._rows(transition))
+        return jax.vmap(self.dqn.add)(state, self._rows(transition, state.params))
 
     def update(self, state, noise):
         return jax.vmap(self.dqn.update)(state, noise["sample"])

@@ -73,6 +73,11 @@ def sample_returns(buffer: Replay, u: jax.Array, n: int):
 
     A time-limit cut (done, not terminal) keeps its bootstrap from the true next observation stored
     in that row. With n = 1 this is row i itself with discount gamma * (1 - terminal).
+
+    Rows may say whether their action was the greedy one (``greedy``); the return then also stops
+    before a row whose action explored (Watkins's Q(lambda) cut, Sutton and Barto 2018, Sec. 12.10), so
+    it estimates the greedy policy's value, Q*, and not the exploring policy's (``dqn.n_step_cut_exploring``;
+    measured in benchmarks/README.md).
     """
     idx = _indices(buffer, u)
     rows, cap = buffer.rows, buffer.capacity
@@ -84,6 +89,8 @@ def sample_returns(buffer: Replay, u: jax.Array, n: int):
     for j in range(n):
         k = (idx + j) % cap
         take = alive & (j <= newer)
+        if j > 0 and "greedy" in rows:
+            take = take & rows["greedy"][k]
         ret = jnp.where(take, ret + discount * rows["reward"][k], ret)
         discount = jnp.where(take, discount * rows["gamma"][k] * (1.0 - rows["terminal"][k].astype(jnp.float32)),
                              discount)
