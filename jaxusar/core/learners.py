@@ -96,7 +96,8 @@ class IndependentDQN:
 
     def _rows(self, transition: dict, params=None) -> dict:
         """The shared row, broadcast to every learner, with each learner's own action and, for n-step
-        returns cut at exploring actions, whether that action was the greedy one under ``params`` (those it was chosen with)."""
+        returns cut at exploring actions, whether that action was the greedy one under ``params`` (those
+        it was chosen with)."""
         row = self.row_fn(transition)
         rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.n, *jnp.shape(x))), row)
         rows["action"] = transition["action"]

@@ -23,7 +23,10 @@ numbers do not depend on which other trials run beside it.
 An env may take per-trial parameters (gymnax style: ``reset(key, params)``, ``step(key, state,
 action, params)``): the sub-policy tasks of the paper's method are one batch of such trials. An env
 may also say where its tests start (``reset_test``) and what is optimal from there
-(``optimal_steps_from``); otherwise tests start like training and ``optimal_steps`` is fixed.
+(``optimal_steps_from``); otherwise tests start like training and ``optimal_steps`` is fixed. An env
+with initiation states (``coverage(greedy, params)``: the fraction of them from which the greedy policy
+is optimal) is judged by that instead: a test is optimal at 1.0, and the kept params are the most
+covering ones; the test episode's own optimality is still recorded (``test_start_optimal``).
 
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
 stepping (a vmap cannot stop one lane) but records nothing more, so its results are exactly those of

@@ -46,7 +46,8 @@ class Experiment:
         for k in sorted(ks, reverse=True):  # the longest first
             learner = option_critic.make_learner(self.env, cfg.dqn, cfg.doc, options=k)
             trainer = Trainer(self.env, learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
-                              train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=self.optimal)
+                              train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps,
+                              optimal_steps=self.optimal)
             self.chains.append([Stage(f"doc/K{k}", trainer, keys)])
 
     def finish(self, out: Path, outcomes: dict, quiet: bool = False) -> dict:

@@ -48,7 +48,8 @@ def build(cfg: ExperimentConfig):
     min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
                         enumerate(t.starts for t in tasks)))
     sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
-                          train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0, min_episode_steps=max(min_steps, 1))
+                          train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0,
+                          min_episode_steps=max(min_steps, 1))
     policy_for = np.full((env.n_agents, options.n), -1, np.int32)
     for k, t in enumerate(tasks):
         agents = [t.agent] if t.agent >= 0 else range(env.n_agents)

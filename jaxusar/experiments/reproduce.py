@@ -236,7 +236,8 @@ def stage_table(h: dict, optimal_team_steps: int) -> list[str]:
     """The hierarchical row of results.json, stage by stage: each sub-policy by both criteria (its whole
     initiation set, and the paper's single-start test), the kept params' coverage, the coordinator."""
     sub, n_sub = h["subpolicy_episodes_to_optimal"], h["budget_episodes_per_subpolicy"]
-    start, cov, states = h["subpolicy_episodes_to_start_optimal"], h["subpolicy_coverage"], h["subpolicy_initiation_states"]
+    start, cov = h["subpolicy_episodes_to_start_optimal"], h["subpolicy_coverage"]
+    states = h["subpolicy_initiation_states"]
     n_tasks = len(sub["per_task"])
     lines = [
         "A sub-policy is optimal when its greedy policy reaches the sub-goal on a shortest path from every state "
