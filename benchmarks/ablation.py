@@ -48,11 +48,15 @@ def subpolicies(seed: int, trials: int, sets: list[str]) -> dict:
     r = stage.trainer.results(jax.block_until_ready(state))
     wall = time.perf_counter() - start
     names = [t.name for t in exp.b["tasks"]]
-    lanes = lambda xs: np.array([np.nan if x is None else x for x in xs], float).reshape(trials, len(names))  # noqa: E731
+    def lanes(xs):  # per lane, None (never) as nan, shaped [trial, task]
+        return np.array([np.nan if x is None else x for x in xs], float).reshape(trials, len(names))
+
     eto, start_eto = lanes(r["episodes_to_optimal"]), lanes(r["episodes_to_start_optimal"])
     cov = np.asarray(r["best_coverage"]).reshape(trials, len(names))
     sums = np.where(np.isnan(eto).any(1), np.nan, np.nansum(eto, 1))
-    med = lambda x: None if np.isnan(x).sum() * 2 >= len(x) else float(np.median(np.where(np.isnan(x), np.inf, x)))  # noqa: E731
+    def med(x):  # the median with never as +inf; None when it is never
+        return None if np.isnan(x).sum() * 2 >= len(x) else float(np.median(np.where(np.isnan(x), np.inf, x)))
+
     return {
         "per_task": {n: {"trials_optimal": int((~np.isnan(eto[:, k])).sum()), "median": med(eto[:, k]),
                          "start_trials_optimal": int((~np.isnan(start_eto[:, k])).sum()),
@@ -89,8 +93,8 @@ def main(argv=None):
     if args.seed == 0:
         ap.error("--seed 0 is the reported runs' seed; tune on others (e.g. 1000)")
     run = subpolicies if args.part == "subpolicies" else coordinator
-    row = {"part": args.part, "sets": args.sets, "seed": args.seed, "trials": args.trials, **run(args.seed, args.trials, args.sets),
-           "machine": cpu_name(), "jax": jax.__version__}
+    row = {"part": args.part, "sets": args.sets, "seed": args.seed, "trials": args.trials,
+           **run(args.seed, args.trials, args.sets), "machine": cpu_name(), "jax": jax.__version__}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a") as f:
         f.write(json.dumps(row) + "\n")

@@ -39,7 +39,7 @@ from flax import struct
 
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
-from jaxusar.core.learners import IndependentDQN, default_row, one_step_target
+from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
 
 DEFAULTS = {
@@ -176,5 +176,5 @@ def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
                 "terminal": row["terminal"] | ~info["valid"]}  # an invalid choice is a dead end
 
     dqn = coordinator_dqn(cfg)
-    return IndependentDQN(macro.obs_dim, macro.n_joint, 1, dqn, one_step_target(dqn, macro.valid_joint), row_fn=row,
+    return IndependentDQN(macro.obs_dim, macro.n_joint, 1, dqn, dqn_target(dqn, macro.valid_joint), row_fn=row,
                           valid_fn=macro.valid_joint, mask_greedy=False)

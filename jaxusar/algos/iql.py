@@ -10,9 +10,9 @@ the bootstrap; time is not in the observation, so treating the cap as terminal w
 from __future__ import annotations
 
 from jaxusar.config import DQNConfig
-from jaxusar.core.learners import IndependentDQN, one_step_target
+from jaxusar.core.learners import IndependentDQN, dqn_target
 from jaxusar.envs import N_ACTIONS, USAREnv
 
 
 def make_learner(env: USAREnv, cfg: DQNConfig) -> IndependentDQN:
-    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, one_step_target(cfg))
+    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg))

@@ -35,7 +35,7 @@ from flax import struct
 from jaxusar import planning
 from jaxusar.algos.options import NAVIGATE, Options
 from jaxusar.config import ConfigError, DQNConfig
-from jaxusar.core.learners import IndependentDQN, default_row, one_step_target
+from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, EnvState, USAREnv, apply_actions
 
 SUCCESS_REWARD, STEP_REWARD = 100.0, -1.0
@@ -101,8 +101,8 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             room = options.region[o]
             victim_cell = tuple(layout.victim_pos[options.victim[o]])
             in_room = [tuple(x) for x in np.argwhere(graph.cell_region == room) if tuple(x) != victim_cell]
-            cells = _entry_cells(graph.cell_region, room) if triage_start == "entry" else in_room
-            cells = [c for c in cells if c != victim_cell]
+            cells = in_room if triage_start == "room" else \
+                [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
             starts = np.array([[r, c, d] for r, c in cells for d in range(4)], np.int32)
             initiation = np.array([[r, c, d] for r, c in in_room for d in range(4)], np.int32)
             tasks.append(Task(options.names[o], o, -1, starts, starts, initiation))
@@ -234,4 +234,4 @@ def make_learner(obs_dim: int, cfg: DQNConfig) -> IndependentDQN:
     def row(transition):
         return {**default_row(transition), "gamma": transition["info"]["gamma"]}
 
-    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, one_step_target(cfg), row_fn=row)
+    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row)

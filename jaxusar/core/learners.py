@@ -50,8 +50,9 @@ def default_row(transition: dict) -> dict:
             "done": transition["done"]}
 
 
-def one_step_target(cfg: DQNConfig, valid_fn: Callable | None = None):
-    """The DQN / Double-DQN target (``cfg.double_dqn``) r + discount * max_a q_t[a] of a replay batch.
+def dqn_target(cfg: DQNConfig, valid_fn: Callable | None = None):
+    """The DQN / Double-DQN target (``cfg.double_dqn``) r + discount * max_a q_t[a] of a replay batch:
+    one rule for one-step, n-step and SMDP rows (they differ only in what ``sample_returns`` makes).
 
     ``reward``/``discount``/``next_obs`` are the batch's (n-step) return, bootstrap discount and
     observation (``replay.sample_returns``): bootstraps through time-limit truncations, only
