@@ -8,6 +8,8 @@ out-of-range override, an unwritable output folder) ends with one line on stderr
 from __future__ import annotations
 
 import argparse
+import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -115,15 +117,27 @@ def demo(args: argparse.Namespace) -> int:
 
 # -- train --------------------------------------------------------------------------------------
 def add_train(subparsers) -> None:
+    from jaxusar import algos
+
+    try:
+        listed = "\n".join(f"  {name:<13} {algos.describe(m)}" for name, m in algos.registry().items())
+    except algos.RegistryError as err:  # a broken learner file: the help still prints, `train` says why
+        listed = f"  (cannot list them: {err})"
     p = subparsers.add_parser(
         "train", help="train one algorithm's trials in one vmapped call and write its results folder",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Train N trials of ALGO at once (one jit(vmap) call per chunk) and write DIR/metrics.json, "
-                    "DIR/curves.csv, DIR/curves.png and DIR/params/. Settings: the algorithm's defaults, "
-                    "then --config FILE, then --set overrides.")
-    p.add_argument("algo", help="algorithm: a module in jaxusar/algos (e.g. iql)")
+                    "DIR/curves.csv, DIR/curves.png and DIR/params/.\nSettings: the algorithm's defaults, the map's "
+                    "settings file if it has one, then --config FILE, then --set overrides.",
+        epilog=f"algorithms:\n{listed}\n\nA learner file in jaxusar/algos that sets ALGORITHM = \"NAME\" is "
+               "listed here (README: 'Adding a learner').\n")
+    p.add_argument("algo", help="the algorithm to train (listed below)")
     p.add_argument("--trials", type=int, default=8, help="independent seeds, run side by side (default 8)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default runs/ALGO)")
     p.add_argument("--config", type=Path, default=None, metavar="FILE", help="YAML config (see configs/)")
+    p.add_argument("--map", default=None, metavar="NAME|PATH",
+                   help="a shipped map or a path to a .txt layout (README: 'Your own map'); the same as "
+                        "--set env.map=NAME (default: the config's, two_rooms)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set train.episodes=500 (repeatable)")
     p.add_argument("--options", default=None, metavar="K[,K...]",
@@ -169,9 +183,11 @@ def train(args: argparse.Namespace) -> int:
     check_run_arguments(args)
     try:
         module = experiment.algorithm_module(args.algo)
-        cfg = config.load(args.config, args.sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
+        sets = ([f"env.map={json.dumps(args.map)}"] if args.map is not None else []) + args.sets
+        cfg = config.load(args.config, sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
         if cfg.algo != args.algo:
-            raise config.ConfigError(f"the config is for algo {cfg.algo!r} but the command trains {args.algo!r}")
+            raise config.ConfigError(f"the config is for algo {cfg.algo!r} but the command trains {args.algo!r}; "
+                                     f"to start from that file's settings, add --set algo={args.algo}")
         out = args.out or Path("runs") / args.algo
         experiment.prepare_out(out, args.force)
         options = parse_options(args.options)
@@ -179,7 +195,7 @@ def train(args: argparse.Namespace) -> int:
             raise UsageError("--options applies to doc (option-critic) only")
         extra = {} if options is None else {"options": options}
         experiment.run(cfg, args.trials, out, force=args.force, quiet=args.quiet,
-                       checkpoint_every=args.checkpoint_every, **extra)
+                       checkpoint_every=args.checkpoint_every, command=args.command_line, **extra)
     except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
         raise UsageError(str(err)) from None
     return 0
@@ -247,7 +263,7 @@ def reproduce(args: argparse.Namespace) -> int:
     start_distributed(args)
     try:
         experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
-                       checkpoint_every=args.checkpoint_every, workers=args.workers)
+                       checkpoint_every=args.checkpoint_every, workers=args.workers, command=args.command_line)
     except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
         raise UsageError(str(err)) from None
     return 0
@@ -271,9 +287,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``jaxusar COMMAND ...``; returns the exit status (bad input raises SystemExit(2))."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.command_line = "jaxusar " + shlex.join(argv)  # recorded in metrics.json / results.json
     try:
         return args.run(args)
+    except BrokenPipeError:  # output piped into `head` and the like: stop quietly
+        sys.stderr.close()
+        return 0
     except UsageError as err:
         print(f"jaxusar {args.command}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -9,7 +9,9 @@ A config file has up to four sections, each a frozen dataclass below::
     seed: 0
 
 Unknown keys, wrong types and impossible values raise ``ConfigError`` naming the dotted key.
-``--set train.episodes=200`` style overrides go through the same validation.
+``--set train.episodes=200`` style overrides go through the same validation. Layers, each over the one
+before: the dataclass defaults, an algorithm's ``DEFAULTS``, the map's ``NAME.settings.yaml`` (settings
+that name its tasks or regions, so they apply only on that map), a config file, ``--set``.
 """
 
 from __future__ import annotations
@@ -154,7 +156,9 @@ class HierarchicalConfig:
     """
 
     task_gamma: dict[str, float] = _field(
-        {"TRIAGE-BOTTOM-VICTIM": 0.9}, lambda d: all(0 < g <= 1 for g in d.values()), "per-task discount overriding dqn.gamma (paper Fig. 4f)")
+        {}, lambda d: all(0 < g <= 1 for g in d.values()),
+        "per-task discount overriding dqn.gamma, by task name (two_rooms sets TRIAGE-BOTTOM-VICTIM: 0.9 in its "
+        "settings file, paper Fig. 4f)")
     triage_start: str = _field("room", lambda s: s in ("room", "entry"),
                                "triage tasks start anywhere in the room, or at its entry cells")
     subpolicy_features: str = _field("factored", lambda s: s in ("factored", "cell"),
@@ -276,27 +280,52 @@ def parse_set(items: list[str]) -> dict:
 
 
 def _merge(base: dict, extra: dict) -> dict:
+    """``extra`` over ``base``, mapping by mapping; an empty mapping in ``extra`` clears (``task_gamma={}``)."""
     out = dict(base)
     for k, v in extra.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and v and isinstance(out.get(k), dict) else v
     return out
+
+
+def _read_yaml(path: Path, what: str) -> dict:
+    try:
+        loaded = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{what} {str(path)!r} is not valid YAML: {e}") from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{what} {str(path)!r}: expected a mapping at the top level")
+    return loaded
+
+
+def map_settings(data: dict) -> dict:
+    """The settings file of the map that ``data`` (a config dict) runs on, or {} (envs/layout.py)."""
+    from jaxusar.envs.layout import settings_path
+
+    name = data.get("env", {}).get("map", EnvConfig.map) if isinstance(data.get("env", {}), dict) else None
+    path = settings_path(name) if isinstance(name, str) else None
+    if path is None:
+        return {}
+    settings = _read_yaml(path, "map settings file")
+    try:
+        from_dict(ExperimentConfig, settings)
+    except ConfigError as err:
+        raise ConfigError(f"map settings file {str(path)!r}: {err}") from None
+    return settings
 
 
 def load(path: str | Path | None = None, sets: list[str] | None = None, defaults: dict | None = None,
          cls=ExperimentConfig):
-    """Load a YAML config (or only ``defaults``), apply ``--set`` overrides, validate, return it frozen."""
-    data: dict = dict(defaults or {})
+    """The config of ``defaults``, then the map's settings file (if any), then the YAML file at ``path``,
+    then ``--set`` overrides; validated and frozen. Each layer overrides the ones before it."""
+    loaded = {}
     if path is not None:
         path = Path(path)
         if not path.exists():
             raise ConfigError(f"config file {str(path)!r} does not exist")
-        try:
-            loaded = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"config file {str(path)!r}: expected a mapping at the top level")
-        data = _merge(data, loaded)
-    data = _merge(data, parse_set(sets or []))
-    cfg = from_dict(cls, data)
+        loaded = _read_yaml(path, "config file")
+    given = _merge(loaded, parse_set(sets or []))
+    data = dict(defaults or {})
+    if cls is ExperimentConfig:  # the map is known only once every layer is read
+        data = _merge(data, map_settings(_merge(data, given)))
+    cfg = from_dict(cls, _merge(data, given))
     return cfg.validate() if hasattr(cfg, "validate") else cfg

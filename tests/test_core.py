@@ -385,3 +385,12 @@ def test_shipped_configs_equal_the_algorithm_defaults():
         cfg = config.load(path)
         module = algorithm_module(cfg.algo)
         assert cfg == config.load(defaults={"algo": cfg.algo, **getattr(module, "DEFAULTS", {})}), path.name
+
+
+def test_episodes_to_optimal_in_words():
+    from jaxusar.experiments.stats import in_words
+
+    assert in_words([None, None], 5000) == "optimal in 0 of 2 trials (never within 5,000 episodes)"
+    assert in_words([1200, None, 300], 5000) == ("optimal in 2 of 3 trials, after 300, 1,200 episodes; never within "
+                                                 "5,000 in the other 1; median 1,200")
+    assert in_words([10, None, None], 100) .endswith("median > 100")

@@ -2,6 +2,7 @@
 
 import csv
 import json
+from pathlib import Path
 
 import pytest
 
@@ -22,7 +23,9 @@ def test_train_iql_end_to_end(tmp_path, capsys):
     assert all(int(r["steps"]) <= 100 for r in rows)
     assert (out / "params" / "trial_1.msgpack").stat().st_size > 0
     assert (out / "curves.png").read_bytes()[:4] == b"\x89PNG"
-    assert "episodes 20/20" in capsys.readouterr().out  # progress was shown
+    printed = capsys.readouterr().out
+    assert "episodes done 20/20 in the slowest trial" in printed  # progress was shown
+    assert "optimal in 0 of 2 trials (never within 20 episodes)" in printed and "None" not in printed
     # a finished run is never overwritten without --force
     with pytest.raises(SystemExit) as e:
         main(["train", "iql", "--trials", "2", "--out", str(out)] + IQL_TINY)
@@ -45,3 +48,159 @@ def test_train_bad_input_is_one_line_before_compiling(argv, message, tmp_path, c
     err = capsys.readouterr().err
     assert e.value.code == 2 and message in err and "Traceback" not in err
     assert not (tmp_path / "x" / "metrics.json").exists()
+
+
+# A second map: three rooms, no room called "bottom" (the two-rooms map's settings must not leak onto it).
+THREE_ROOMS = """\
+V..#....#..V
+...#....#...
+.......A....
+...#....#...
+####....####
+.....A......
+...#....#...
+V..#....#...
+"""
+THREE_ROOMS_REGIONS = """\
+L left_room room
+H hall_way hall
+R right_room room
+S south_room room
+---
+LLL#HHHH#RRR
+LLL#HHHH#RRR
+LLLHHHHHHRRR
+LLL#HHHH#RRR
+####HHHH####
+SSSHHHHHHHHH
+SSS#HHHH#HHH
+SSS#HHHH#HHH
+"""
+
+
+def write_three_rooms(folder) -> str:
+    (folder / "three.txt").write_text(THREE_ROOMS)
+    (folder / "three.regions.txt").write_text(THREE_ROOMS_REGIONS)
+    return str(folder / "three.txt")
+
+
+def sets(*kvs: str) -> list[str]:
+    return [arg for kv in kvs for arg in ("--set", kv)]
+
+
+TINY = {  # per listed algorithm: a budget that runs in seconds (hierarchical: on the second map)
+    "iql": IQL_TINY,
+    "doc": sets("doc.options=[2]", "train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
+                "env.horizon=100"),
+    "hierarchical": sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
+                         "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4"),
+}
+
+
+def test_the_listed_algorithms_are_the_registry():
+    from jaxusar import algos
+
+    assert sorted(algos.registry()) == sorted(TINY) == ["doc", "hierarchical", "iql"]
+    assert algos.registry()["hierarchical"].__name__ == "jaxusar.algos.coordinator"
+
+
+@pytest.mark.parametrize("algo", sorted(TINY))
+def test_every_listed_algorithm_trains_from_the_cli(algo, tmp_path, capsys):
+    """What `jaxusar train --help` lists trains on a tiny budget; the default hierarchical config runs on a
+    map without the two-rooms map's task names."""
+    out = tmp_path / algo
+    extra = ["--map", write_three_rooms(tmp_path)] if algo == "hierarchical" else []
+    assert main(["train", algo, "--trials", "1", "--out", str(out), "--quiet"] + extra + TINY[algo]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    per_trial = m["per_options"]["2"] if algo == "doc" else m  # doc: one run per number of options
+    assert m["config"]["algo"] == algo and len(per_trial["episodes_to_optimal"]) == 1
+    if algo == "hierarchical":
+        assert m["config"]["env"]["map"].endswith("three.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
+        assert m["optimal_team_steps"] > 0 and len(m["tasks"]) == 9  # 2 medics x 3 rooms + 3 victims
+    assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["options", "subpolicies", "coordinator", "option_critic"])
+def test_modules_that_are_parts_of_an_algorithm_are_not_trainable(name, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["train", name])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "unknown algorithm" in err and "doc, hierarchical, iql" in err
+
+
+def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
+    from jaxusar import config
+    from jaxusar.algos import coordinator
+
+    defaults = {"algo": "hierarchical", **coordinator.DEFAULTS}
+    assert config.load(defaults=defaults).hierarchical.task_gamma == {"TRIAGE-BOTTOM-VICTIM": 0.9}  # two_rooms'
+    path = write_three_rooms(tmp_path)
+    assert config.load(None, [f"env.map={path}"], defaults).hierarchical.task_gamma == {}
+    # a map's own settings file beside its layout; a config file and --set still override it; {} clears
+    (tmp_path / "three.settings.yaml").write_text("hierarchical:\n  task_gamma: {TRIAGE-LEFT-VICTIM: 0.8}\n")
+    assert config.load(None, [f"env.map={path}"], defaults).hierarchical.task_gamma == {"TRIAGE-LEFT-VICTIM": 0.8}
+    cleared = config.load(None, [f"env.map={path}", "hierarchical.task_gamma={}"], defaults)
+    assert cleared.hierarchical.task_gamma == {}
+    (tmp_path / "three.settings.yaml").write_text("hierarchical:\n  task_gama: {}\n")
+    with pytest.raises(config.ConfigError, match="three.settings.yaml.*task_gama"):
+        config.load(None, [f"env.map={path}"], defaults)
+    # a task name the map lacks: one line naming the map's tasks and the fix, before anything compiles
+    (tmp_path / "three.settings.yaml").unlink()
+    with pytest.raises(SystemExit) as e:
+        main(["train", "hierarchical", "--map", path, "--set", "hierarchical.task_gamma={TRIAGE-BOTTOM-VICTIM: 0.9}",
+              "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "TRIAGE-LEFT-VICTIM" in err and "hierarchical.task_gamma={}" in err
+
+
+def test_a_config_of_another_algorithm_says_how_to_start_from_it(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["train", "doc", "--config", str(Path(__file__).parents[1] / "configs" / "iql.yaml"), "--out", str(tmp_path / "x")])
+    assert e.value.code == 2 and "--set algo=doc" in capsys.readouterr().err
+
+
+FORK_LEARNER = '''"""Independent learners with Double DQN targets: a fork's learner, one file."""
+
+import dataclasses
+
+from jaxusar.core.learners import IndependentDQN, dqn_target
+from jaxusar.envs import N_ACTIONS
+
+ALGORITHM = "double_iql"
+DEFAULTS = {"dqn": {"double_dqn": True}}
+
+
+def make_learner(env, cfg):
+    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg))
+'''
+
+
+def test_a_forks_learner_file_trains_from_the_cli(tmp_path):
+    """README 'Adding a learner': one file in a checkout's jaxusar/algos (an editable install imports the
+    checkout, as PYTHONPATH does here) is listed by `jaxusar train --help` and trains."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    checkout = tmp_path / "checkout"
+    shutil.copytree(Path(__file__).parents[1] / "jaxusar", checkout / "jaxusar",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (checkout / "jaxusar" / "algos" / "double_iql.py").write_text(FORK_LEARNER)
+    env = {**os.environ, "PYTHONPATH": str(checkout)}
+
+    def jaxusar(*argv):
+        return subprocess.run([sys.executable, "-m", "jaxusar", *argv], cwd=checkout, env=env, capture_output=True,
+                              text=True, timeout=600)
+
+    listed = jaxusar("train", "--help")
+    assert "double_iql" in listed.stdout and "Double DQN targets" in listed.stdout, listed.stderr
+    run = jaxusar("train", "double_iql", "--trials", "1", "--out", str(tmp_path / "run"), "--quiet", *IQL_TINY)
+    assert run.returncode == 0, run.stderr
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["algorithm"] == "double_iql" and m["config"]["dqn"]["double_dqn"] is True
+    # a fork's file with a bug: one line naming the file, no traceback
+    (checkout / "jaxusar" / "algos" / "double_iql.py").write_text(FORK_LEARNER + "\nundefined_name\n")
+    broken = jaxusar("train", "double_iql", "--out", str(tmp_path / "x"))
+    assert broken.returncode == 2 and "double_iql.py" in broken.stderr and "NameError" in broken.stderr
+    assert "Traceback" not in broken.stderr

@@ -42,6 +42,10 @@ from jaxusar.config import CoordinatorConfig, DQNConfig
 from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
 
+ALGORITHM = "hierarchical"  # `jaxusar train hierarchical`: sub-policies, then the coordinator
+EXPERIMENT = "jaxusar.experiments.hierarchical"
+DESCRIPTION = "The paper's method (Sec. IV): DQN option sub-policies on pseudo-rewards, then this SMDP coordinator."
+
 DEFAULTS = {
     # sub-policies (paper Fig. 4): a test every 10 episodes, up to ~600 episodes each. Chosen on tuning
     # seeds 1000-1001 (benchmarks/README.md, "Ablation"), judged by the fraction of each option's initiation

@@ -13,6 +13,8 @@ from jaxusar.config import DQNConfig
 from jaxusar.core.learners import IndependentDQN, dqn_target
 from jaxusar.envs import N_ACTIONS, USAREnv
 
+ALGORITHM = "iql"
+
 
 def make_learner(env: USAREnv, cfg: DQNConfig) -> IndependentDQN:
     return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg))

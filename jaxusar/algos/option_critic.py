@@ -88,6 +88,8 @@ from jaxusar.core import replay as rb
 from jaxusar.core.qlearning import DQN, DQNState, linear_epsilon
 from jaxusar.envs import N_ACTIONS, USAREnv
 
+ALGORITHM = "doc"  # `jaxusar train doc`: one run per number of options (doc.options)
+EXPERIMENT = "jaxusar.experiments.doc"
 N_AGENTS = 2
 NO_OPTION = -1
 

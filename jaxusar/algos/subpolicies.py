@@ -114,7 +114,9 @@ def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: fl
     """Stacked TaskParams for ``tasks`` (numpy, leading task axis)."""
     unknown = sorted(set(task_gamma) - {t.name for t in tasks})
     if unknown:
-        raise ConfigError(f"hierarchical.task_gamma names unknown task(s) {unknown}; tasks: {[t.name for t in tasks]}")
+        raise ConfigError(f"hierarchical.task_gamma names task(s) {unknown} that map {env.layout.name!r} does not have "
+                          f"(its tasks: {', '.join(t.name for t in tasks)}); name one of those, or drop them with "
+                          "--set 'hierarchical.task_gamma={}'")
     layout, region = env.layout, env.graph.cell_region
     pad = lambda a, n: np.concatenate([a, np.repeat(a[:1], n - len(a), 0)])
     width = {k: max(len(getattr(t, k)) for t in tasks) for k in ("starts", "test_starts", "initiation")}

@@ -7,6 +7,8 @@ A map is two text files in ``jaxusar/envs/layouts/``:
 ``NAME.regions.txt``  the region grid (the paper's graph view, Fig. 3): one letter per cell, ``#``
                       exactly on the wall and obstacle cells; its header names each letter
                       (``T top_room room``; the kind is ``room`` or ``hall``).
+``NAME.settings.yaml`` optional: config settings that belong to this map (they name its tasks), merged
+                      over an algorithm's defaults in every run on it (``jaxusar.config.load``).
 
 Each file may start with a header that ends at a line ``---``; header lines starting with ``;``
 are comments. A file without ``---`` is all grid.
@@ -195,16 +197,38 @@ def available_layouts() -> list[str]:
     return sorted(p.name[: -len(".txt")] for p in LAYOUT_DIR.glob("*.txt") if not p.name.endswith(".regions.txt"))
 
 
-def load_layout(name: str) -> Layout:
-    """Load a shipped layout by name (``two_rooms``) or from a path to a ``.txt`` layout file."""
+def layout_path(name: str) -> Path:
+    """The ``.txt`` file of a shipped map name (``two_rooms``) or of a path to a layout."""
     path = Path(name)
     if path.suffix == ".txt" and path.exists():
-        layout_path = path
-    elif (LAYOUT_DIR / f"{name}.txt").exists():
-        layout_path = LAYOUT_DIR / f"{name}.txt"
-    else:
-        raise LayoutError(f"unknown map {name!r}; available: {', '.join(available_layouts())} (or a path to a .txt layout)")
-    regions_path = layout_path.with_name(layout_path.name[: -len(".txt")] + ".regions.txt")
+        return path
+    if (LAYOUT_DIR / f"{name}.txt").exists():
+        return LAYOUT_DIR / f"{name}.txt"
+    raise LayoutError(f"unknown map {name!r}; available: {', '.join(available_layouts())} (or a path to a .txt layout)")
+
+
+def companion(path: Path, suffix: str) -> Path:
+    """``NAME.txt`` -> ``NAME<suffix>`` beside it (``.regions.txt``, ``.settings.yaml``)."""
+    return path.with_name(path.name[: -len(".txt")] + suffix)
+
+
+def load_layout(name: str) -> Layout:
+    """Load a shipped layout by name (``two_rooms``) or from a path to a ``.txt`` layout file."""
+    path = layout_path(name)
+    regions_path = companion(path, ".regions.txt")
     if not regions_path.exists():
         raise LayoutError(f"map {name!r}: no region grid beside the layout (expected {regions_path})")
-    return parse_layout(layout_path.read_text(), regions_path.read_text(), name=layout_path.stem)
+    return parse_layout(path.read_text(), regions_path.read_text(), name=path.stem)
+
+
+def settings_path(name: str) -> Path | None:
+    """The map's own config settings (``NAME.settings.yaml`` beside its layout), if it has one.
+
+    They hold what only makes sense on that map, such as a discount for one of its named tasks, and
+    apply to every run on it (``jaxusar.config.load``). None for an unknown map (its error comes from
+    the env)."""
+    try:
+        path = companion(layout_path(name), ".settings.yaml")
+    except LayoutError:
+        return None
+    return path if path.exists() else None

@@ -6,6 +6,7 @@ Every function takes one unbatched ``EnvState`` (or a list of them); jax arrays 
 
 from __future__ import annotations
 
+import textwrap
 from functools import lru_cache
 from pathlib import Path
 
@@ -63,12 +64,12 @@ def _map_image(env: USAREnv) -> np.ndarray:
 
 
 def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = None, trail=None,
-                 legend: bool = False):
+                 legend: bool = False, label_size: float = 6):
     """Draw one state in the colours of the paper's Fig. 2 and return the matplotlib Axes.
 
     Floor light grey, walls black, obstacles dark grey, victims green (triaged: pale green with a dark
     check mark), medics blue with a white arrow for the facing direction. Medics and victims carry their
-    index in the top-left corner. ``trail``: optional int[T, n_agents, 2] of earlier positions, drawn as a
+    index in the top-left corner (``label_size`` points). ``trail``: optional int[T, n_agents, 2] of earlier positions, drawn as a
     faint path per medic. ``legend``: a key to the colours below the map.
     """
     from matplotlib.patches import Polygon, Rectangle
@@ -97,7 +98,7 @@ def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = Non
         if done:  # a check mark as well as the paler green, so triage reads without colour vision
             ax.plot([c - 0.28, c - 0.06, c + 0.3], [r + 0.02, r + 0.25, r - 0.25], color=CHECK,
                     linewidth=2.5, solid_capstyle="round", zorder=4)
-        _corner_label(ax, r, c, v, CHECK if done else "white")
+        _corner_label(ax, r, c, v, CHECK if done else "white", label_size)
 
     for i, ((r, c), d) in enumerate(zip(state.agent_pos, state.agent_dir)):
         ax.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, color=MEDIC, zorder=3))
@@ -106,7 +107,7 @@ def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = Non
         base = np.array([c - 0.22 * dc, r - 0.22 * dr])
         side = 0.3 * np.array([-dr, dc])  # perpendicular to the facing direction, in (x, y)
         ax.add_patch(Polygon([tip, base + side, base - side], closed=True, color="white", zorder=4))
-        _corner_label(ax, r, c, i, "white")
+        _corner_label(ax, r, c, i, "white", label_size)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     if title is not None:
@@ -116,13 +117,15 @@ def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = Non
     return ax
 
 
-def _corner_label(ax, r, c, index: int, color: str) -> None:
-    ax.text(c - 0.44, r - 0.44, str(index), color=color, fontsize=6, fontweight="bold", ha="left", va="top",
-            zorder=5)
+def _corner_label(ax, r, c, index: int, color: str, size: float) -> None:
+    from matplotlib import patheffects
+
+    ax.text(c - 0.44, r - 0.44, str(index), color=color, fontsize=size, fontweight="bold", ha="left", va="top",
+            zorder=5, path_effects=[patheffects.withStroke(linewidth=1.5, foreground="#202020" if color == "white" else "white")])
 
 
-def _legend(ax) -> None:
-    from matplotlib.legend_handler import HandlerTuple
+def _legend_entries(trail: bool = False) -> dict:
+    """The key to the colours: label -> a legend handle (a tuple draws a mark over a square)."""
     from matplotlib.lines import Line2D
 
     def cell(color, mark=None, mark_color="white", size=5):
@@ -130,9 +133,18 @@ def _legend(ax) -> None:
         return square if mark is None else (square, Line2D([], [], marker=mark, markersize=size,
                                                            color=mark_color, linestyle=""))
 
-    entries = {"medic (facing east)": cell(MEDIC, ">"), "victim": cell(VICTIM),
+    entries = {"medic N (facing east)": cell(MEDIC, ">"), "victim N": cell(VICTIM),
                "triaged victim": cell(TRIAGED_VICTIM, r"$\checkmark$", CHECK, 7),
                "wall": cell(WALL), "obstacle": cell(OBSTACLE)}
+    if trail:
+        entries["a medic's path so far"] = Line2D([], [], color=MEDIC, alpha=0.35, linewidth=2.5)
+    return entries
+
+
+def _legend(ax) -> None:
+    from matplotlib.legend_handler import HandlerTuple
+
+    entries = _legend_entries()
     ax.legend(list(entries.values()), list(entries), handler_map={tuple: HandlerTuple(ndivide=1)},
               loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=len(entries), frameon=False, fontsize=8,
               handlelength=1.0, columnspacing=1.4)
@@ -183,18 +195,26 @@ def save_episode_strip(env: USAREnv, states, path, titles=None, max_frames: int 
     cols = min(cols, len(keep))
     rows = -(-len(keep) // cols)
     h, w = env.layout.shape
-    cell = 0.22
-    fig, axes = _figure(cols * (w * cell + 0.15), rows * (h * cell + 0.45), rows, cols)
+    cell = 0.3  # inches per grid cell; the medic and victim numbers take ~40% of a cell
+    width = cols * (w * cell + 0.15)
+    lines = [] if suptitle is None else [line for part in suptitle.split("\n")
+                                         for line in textwrap.wrap(part, max(20, int(width * 72 / 6.6)))]
+    fig, axes = _figure(width, rows * (h * cell + 0.45) + 0.2 * len(lines) + 0.5, rows, cols)
     positions = np.stack([s.agent_pos for s in states])
     for ax, k in zip(axes.flat, keep):
         title = titles[k] if titles is not None else f"t={int(states[k].t)}"
         if returns is not None:
             title += f"  R={returns[k]:g}"
-        render_state(env, states[k], ax=ax, title=title, trail=positions[:k])
+        render_state(env, states[k], ax=ax, title=title, trail=positions[:k], label_size=cell * 72 * 0.4)
     for ax in axes.flat[len(keep):]:
         ax.set_axis_off()
-    if suptitle is not None:
-        fig.suptitle(suptitle, fontsize=11)
+    if lines:
+        fig.suptitle("\n".join(lines), fontsize=11)
+    from matplotlib.legend_handler import HandlerTuple
+
+    entries = _legend_entries(trail=True)
+    fig.legend(list(entries.values()), list(entries), handler_map={tuple: HandlerTuple(ndivide=1)},
+               loc="outside lower center", ncol=len(entries), frameon=False, fontsize=9, handlelength=1.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)

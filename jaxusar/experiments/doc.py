@@ -26,9 +26,9 @@ from jaxusar import envs, planning
 from jaxusar.algos import option_critic
 from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
-from jaxusar.experiments.plots import training_figure
+from jaxusar.experiments.plots import reward_range, training_figure
 from jaxusar.experiments.runner import Stage
-from jaxusar.experiments.train import environment_info, flat_metrics, write_trial_files
+from jaxusar.experiments.train import environment_info, flat_metrics, in_words, write_trial_files
 
 
 class Experiment:
@@ -62,12 +62,11 @@ class Experiment:
             (k_out / "metrics.json").write_text(json.dumps(per_k[k], indent=2))
             if not quiet:
                 m = per_k[k]
-                print(f"[doc K={k}] episodes_to_optimal per trial: {m['episodes_to_optimal']}; best {m['best']}, "
-                      f"median {m['median']}, {m['fraction_optimal']:.0%} optimal; first test triaging every "
-                      f"victim after: {m['episodes_to_solved']}", flush=True)
+                print(f"[doc K={k}] {in_words(m['episodes_to_optimal'], cfg.train.episodes)}; task solved (any "
+                      f"length) in {sum(e is not None for e in m['episodes_to_solved'])} of {m['trials']}", flush=True)
         series = [(f"{k} options", outcomes[f"doc/K{k}"].results) for k in ks]
         training_figure(series, out / "fig5_doc.png", f"simplified distributed option-critic on {cfg.env.map}",
-                        horizon=self.env.horizon, optimal_steps=self.optimal)
+                        horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env))
         keep = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal", "episodes_to_solved",
                 "best_test_return", "best_test_steps", "env_steps_per_trial", "seconds")
         return {

@@ -32,9 +32,9 @@ from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import options_from_graph
 from jaxusar.config import ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
-from jaxusar.experiments.plots import band, smooth, training_figure
+from jaxusar.experiments.plots import band, band_key, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
-from jaxusar.experiments.train import environment_info, stage_seconds, summarize
+from jaxusar.experiments.train import environment_info, in_words, stage_seconds, summarize
 
 
 def build(cfg: ExperimentConfig):
@@ -134,9 +134,14 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
             ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("training episodes")
-    fig.suptitle(f"Sub-policies on pseudo-rewards (line: mean of {tl.shape[0]} trials; band: 25-75th percentile; "
-                 "faint: min-max; dashed: optimal; dotted: horizon)", fontsize=10)
-    fig.tight_layout()
+    from matplotlib.lines import Line2D
+
+    band_key(fig, tl.shape[0], extra={
+        "optimal (shortest path; 100% of states)": Line2D([], [], color="green", ls="--", lw=1),
+        "horizon (episode cap)": Line2D([], [], color="grey", ls=":", lw=1)})
+    fig.suptitle("Sub-policies on pseudo-rewards (paper Fig. 4); right: the % of the option's initiation states "
+                 "from which the greedy policy takes a shortest path", fontsize=10)
+    fig.tight_layout(rect=(0, 0.6 / (2.4 * n), 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
@@ -214,9 +219,12 @@ class Experiment:
         }
         write_outputs(out, b, sub, co, best_sub, metrics)
         if not quiet:
-            print(f"[hierarchical] episodes_to_optimal per trial (sub-policy sum + coordinator): {eto}; "
-                  f"best {metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal; "
-                  f"coordinator {co['episodes_to_optimal']}", flush=True)
+            budget = n_tasks * cfg.train.episodes + cfg.hierarchical.coordinator.episodes
+            single = [p["single_start_total"] for p in per_trial]
+            print(f"[hierarchical] end to end (sub-policy episodes + the coordinator's): {in_words(eto, budget)}.\n"
+                  f"[hierarchical] with each sub-policy judged by the paper's single-start test: "
+                  f"{in_words(single, budget)}.\n[hierarchical] the coordinator over its trial's sub-policies: "
+                  f"{in_words(co['episodes_to_optimal'], cfg.hierarchical.coordinator.episodes)}.", flush=True)
         return metrics
 
 
@@ -253,7 +261,7 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
         subpolicy_figure(one, [name], out / f"fig4_{name.replace(':', '_').lower()}.png", env.horizon,
                          np.asarray(opt[k:k + 1]))
     training_figure(co, out / "coordinator.png", "coordinator (SMDP DQN over joint options)", horizon=env.horizon,
-                    optimal_steps=b["optimal"], smooth_window=5)
+                    optimal_steps=b["optimal"], smooth_window=5, reward_range=reward_range(env))
     # the best trial: optimal soonest, else the best team test
     order = sorted(range(trials), key=lambda j: (metrics["episodes_to_optimal"][j] is None,
                                                   metrics["episodes_to_optimal"][j] or 0,
@@ -264,8 +272,9 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
                                               jax.tree.map(lambda x: jnp.asarray(x[j]), best_sub))
     from jaxusar.envs.render import save_episode_strip
 
-    plan = " | ".join("+".join(d[:-1]) + ("" if d[-1] else " (invalid)") for d in decisions)
+    plan = "   ".join(f"{i + 1}) " + ", ".join(f"medic {a}: {o}" for a, o in enumerate(d[:-1]))
+                       + ("" if d[-1] else " (invalid)") for i, d in enumerate(decisions))
     save_episode_strip(env, states, out / "team_episode.png", rewards=rewards,
                        suptitle=f"best trial {j}: greedy coordinator + sub-policies, {len(rewards)} steps, "
-                                f"return {rewards.sum():g}\n{plan}")
+                                f"return {rewards.sum():g}\nthe coordinator's joint options: {plan}")
     metrics["best_trial"] = {"trial": j, "steps": len(rewards), "return": float(rewards.sum()), "decisions": decisions}

@@ -33,14 +33,36 @@ def band(ax, x, y, label=None, color=None):
     return line
 
 
+def band_key(fig, n_trials: int, color: str = "tab:blue", extra: dict | None = None) -> None:
+    """A legend under the figure saying what ``band``'s line and two shades are (and ``extra`` label: artist)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    entries = {f"mean of {n_trials} trials": Line2D([], [], color=color, lw=1.5),
+               "25th-75th percentile of trials": Patch(color=color, alpha=0.35, lw=0),
+               "lowest to highest trial": Patch(color=color, alpha=0.1, lw=0), **(extra or {})}
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=len(entries), frameon=False,
+               fontsize=9)
+
+
+def reward_range(env) -> tuple[float, float]:
+    """(the team return of an episode that triages nothing, of one that triages every victim at once)."""
+    return env.horizon * env.step_penalty, env.n_victims * env.triage_reward
+
+
 def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, title: str,
-                    horizon: int | None = None, optimal_steps: int | None = None, smooth_window: int = 20):
+                    horizon: int | None = None, optimal_steps: int | None = None, smooth_window: int = 20,
+                    reward_range: tuple[float, float] | None = None):
     """2x2 figure: train steps, train reward, test steps, test reward vs training episodes.
 
     ``results`` is one trainer result dict, or a list of (label, results) drawn on the same axes.
+    ``reward_range``: (the return of an episode that triages nothing, the best possible return); the
+    reward axes span at least it, and a figure whose greedy tests never beat the first says so.
     """
+    from matplotlib.lines import Line2D
+
     series = results if isinstance(results, list) else [(None, results)]
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.4), sharex=True)
     for label, r in series:
         n = r["train_length"].shape[1]
         ep = np.arange(1, n + 1)
@@ -50,9 +72,21 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         band(axes[1, 1], r["test_episode"], r["test_return"], label)
     for ax in axes[:, 0]:
         if horizon:
-            ax.axhline(horizon, color="grey", ls=":", lw=1, label="horizon")
+            ax.axhline(horizon, color="grey", ls=":", lw=1)
+            ax.set_ylim(0, horizon * 1.05)
         if optimal_steps:
-            ax.axhline(optimal_steps, color="green", ls="--", lw=1, label="optimal")
+            ax.axhline(optimal_steps, color="green", ls="--", lw=1)
+        ax.set_ylabel("steps per episode")
+    for ax in axes[:, 1]:
+        ax.set_ylabel("team reward per episode")
+        if reward_range is not None:
+            lo, hi = reward_range
+            y0, y1 = ax.get_ylim()
+            pad = 0.05 * (hi - lo)
+            ax.set_ylim(min(y0, lo - pad), max(y1, hi + pad))
+    if reward_range is not None and max(float(np.max(r["test_return"])) for _, r in series) <= reward_range[0]:
+        axes[1, 1].text(0.5, 0.5, "no greedy test triaged a victim\nwithin this budget", transform=axes[1, 1].transAxes,
+                        ha="center", va="center", fontsize=11, color="tab:red")
     axes[0, 0].set_title(f"train: steps per episode (moving avg {smooth_window})")
     axes[0, 1].set_title(f"train: team reward (moving avg {smooth_window})")
     axes[1, 0].set_title("greedy test: steps")
@@ -61,10 +95,15 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         ax.set_xlabel("training episodes")
     for ax in axes.ravel():
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="best")
+    if series[0][0] is not None:
+        axes[0, 0].legend(fontsize=8, loc="upper right")
     n_trials = series[0][1]["train_length"].shape[0]
-    fig.suptitle(f"{title}  (line: mean of {n_trials} trials; band: 25-75th percentile; faint: min-max)")
-    fig.tight_layout()
+    extra = {"horizon (episode cap)": Line2D([], [], color="grey", ls=":", lw=1)}
+    if optimal_steps:
+        extra[f"optimal ({optimal_steps} steps)"] = Line2D([], [], color="green", ls="--", lw=1)
+    band_key(fig, n_trials, color="grey" if len(series) > 1 else "tab:blue", extra=extra)
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

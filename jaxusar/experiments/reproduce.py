@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shlex
 import shutil
 import time
 from pathlib import Path
@@ -83,8 +84,9 @@ def fingerprint(cfgs: dict, trials: int) -> str:
 
 def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = False, sets: list[str] | None = None,
         force: bool = False, quiet: bool = False, checkpoint_every: float = 60.0, workers: int | None = None,
-        devices=None) -> dict:
-    """Everything above; returns the results.json dict (in every process; only process 0 writes)."""
+        devices=None, command: str | None = None) -> dict:
+    """Everything above; returns the results.json dict (in every process; only process 0 writes).
+    ``command``: the command line that ran it, for results.json (default: one that gives the same run)."""
     start = time.perf_counter()
     cfgs = configs(quick, sets)  # bad settings fail here, before anything compiles
     keys = train.trial_keys(cfgs["iql"].seed, trials, devices)
@@ -129,6 +131,9 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
         shutil.copyfile(out / source, out / name)
 
     results = summary(per_algorithm, cfgs, trials, quick)
+    results["command"] = command or shlex.join(
+        ["jaxusar", "reproduce", "--trials", str(trials), "--out", str(out)] + (["--quick"] if quick else [])
+        + [a for s in sets or [] for a in ("--set", s)])
     results["seconds_by_algorithm"] = seconds
     results["wall_seconds"] = round(time.perf_counter() - start, 2)
     results["wall_seconds_training"] = round(train_seconds, 2)
@@ -186,7 +191,6 @@ def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:
         "paper_table2_best_of_8": PAPER_TABLE2,
         "config_hashes": {a: c.hash() for a, c in cfgs.items()},
         "environment": train.environment_info(),
-        "command": "jaxusar reproduce" + (f" --trials {trials}" if trials != 8 else "") + (" --quick" if quick else ""),
     }
 
 

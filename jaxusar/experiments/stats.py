@@ -53,3 +53,15 @@ def summarize(episodes_to_optimal: list) -> dict:
             "median": _finite_or_none(np.median(x)) if n else None,
             "iqm": iqm(episodes_to_optimal), "iqm_ci95": bootstrap_ci(episodes_to_optimal),
             "fraction_optimal": len(reached) / n if n else 0.0}
+
+
+def in_words(episodes_to_optimal: list, budget: int) -> str:
+    """The trials' episodes to optimal as a sentence for the console (never = not within ``budget``)."""
+    n, reached = len(episodes_to_optimal), sorted(e for e in episodes_to_optimal if e is not None)
+    if not reached:
+        return f"optimal in 0 of {n} trials (never within {budget:,} episodes)"
+    text = f"optimal in {len(reached)} of {n} trials, after {', '.join(f'{e:,}' for e in reached)} episodes"
+    if len(reached) < n:
+        text += f"; never within {budget:,} in the other {n - len(reached)}"
+    median = summarize(episodes_to_optimal)["median"]
+    return text + f"; median {f'{median:,.0f}' if median is not None else f'> {budget:,}'}"

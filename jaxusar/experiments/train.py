@@ -2,8 +2,9 @@
 
 An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage``: the trainers to run)
 and ``finish(out, outcomes, quiet) -> metrics`` (writes everything but metrics.json). A flat learner
-(IQL, or any ``jaxusar/algos/<name>.py`` without an experiment file) gets ``FlatExperiment``; the
-hierarchical method and option-critic have ``Experiment`` classes in ``jaxusar/experiments/<algo>.py``.
+(IQL, or a fork's ``jaxusar/algos/<name>.py`` with ``ALGORITHM`` and ``make_learner``) gets
+``FlatExperiment``; the hierarchical method and option-critic name theirs (``EXPERIMENT``:
+``jaxusar/experiments/hierarchical.py``, ``doc.py``).
 ``run`` drives one experiment (``jaxusar train``); ``jaxusar.experiments.reproduce`` drives several.
 
 Output folder of a flat learner::
@@ -33,29 +34,18 @@ import numpy as np
 import optax
 from flax import serialization
 
-from jaxusar import envs, planning
+from jaxusar import algos, envs, planning
 from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
 from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments.runner import Outcome, Runner, Stage, gather
-from jaxusar.experiments.stats import summarize
-from jaxusar.experiments.plots import training_figure
-
-
-ALIASES = {"doc": "option_critic", "hierarchical": "coordinator"}  # command-line name -> module in jaxusar/algos
+from jaxusar.experiments.stats import in_words, summarize
+from jaxusar.experiments.plots import reward_range, training_figure
 
 
 def algorithm_module(name: str):
-    """``jaxusar.algos.<name>``: adding a learner = adding one file there."""
-    try:
-        return importlib.import_module(f"jaxusar.algos.{ALIASES.get(name, name)}")
-    except ModuleNotFoundError:
-        import pkgutil
-
-        import jaxusar.algos as algos
-
-        known = sorted({m.name for m in pkgutil.iter_modules(algos.__path__)} | set(ALIASES))
-        raise ConfigError(f"unknown algorithm {name!r}; available: {', '.join(known)}") from None
+    """The module of algorithm ``name`` (``jaxusar.algos.registry``: adding a learner = adding one file)."""
+    return algos.algorithm(name)
 
 
 def environment_info() -> dict:
@@ -76,8 +66,8 @@ def cpu_name() -> str:
 
 def print_progress(name: str, p: dict) -> None:
     """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk)."""
-    print(f"[{name}] chunk {p['chunk']}: episodes {p['episodes_min']}/{p['episodes_total']} "
-          f"(mean {p['episodes_mean']:.0f}), {p['elapsed']:.1f}s elapsed, ETA {p['eta']:.0f}s", flush=True)
+    print(f"[{name}] chunk {p['chunk']}: episodes done {p['episodes_min']}/{p['episodes_total']} in the slowest "
+          f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, about {p['eta']:.0f} s to go", flush=True)
 
 
 def build(cfg: ExperimentConfig):
@@ -168,7 +158,7 @@ def write_trial_files(out: Path, results: dict) -> None:
 
 
 class FlatExperiment:
-    """One Trainer over the trials: IQL, or any learner in jaxusar/algos without an experiment file."""
+    """One Trainer over the trials: IQL, or any learner in jaxusar/algos without an EXPERIMENT of its own."""
 
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
         self.cfg = cfg
@@ -181,22 +171,20 @@ class FlatExperiment:
         metrics = flat_metrics(cfg, results, self.optimal, o)
         write_trial_files(out, results)
         training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
-                        optimal_steps=self.optimal)
+                        optimal_steps=self.optimal, reward_range=reward_range(self.env))
         if not quiet:
-            print(f"[{cfg.algo}] episodes_to_optimal per trial: {metrics['episodes_to_optimal']}; best "
-                  f"{metrics['best']}, median {metrics['median']}, {metrics['fraction_optimal']:.0%} optimal", flush=True)
+            print(f"[{cfg.algo}] {in_words(results['episodes_to_optimal'], cfg.train.episodes)}", flush=True)
         return metrics
 
 
 def experiment(cfg: ExperimentConfig, keys: jax.Array, **extra):
-    """The experiment object of ``cfg.algo`` (see the module docstring)."""
-    try:
-        module = importlib.import_module(f"jaxusar.experiments.{cfg.algo}")
-    except ModuleNotFoundError:
+    """The experiment object of ``cfg.algo``: its ``EXPERIMENT`` module's, else a FlatExperiment."""
+    name = getattr(algorithm_module(cfg.algo), "EXPERIMENT", None)
+    if name is None:
         if extra:
-            raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}") from None
+            raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}")
         return FlatExperiment(cfg, keys)
-    return module.Experiment(cfg, keys, **extra)
+    return importlib.import_module(name).Experiment(cfg, keys, **extra)
 
 
 def stage_progress(quiet: bool):
@@ -204,10 +192,11 @@ def stage_progress(quiet: bool):
 
 
 def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
-        checkpoint_every: float = 60.0, devices=None, **extra) -> dict:
+        checkpoint_every: float = 60.0, devices=None, command: str | None = None, **extra) -> dict:
     """Train ``trials`` seeds of ``cfg.algo`` (one vmapped call per trainer) and write the results folder.
 
-    Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics.
+    Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics;
+    ``command`` (the command line that ran it) is recorded in them.
     """
     start = time.perf_counter()
     keys = trial_keys(cfg.seed, trials, devices)
@@ -220,6 +209,7 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
         return {}
     metrics = exp.finish(out, outcomes, quiet)
     metrics["wall_seconds"] = round(time.perf_counter() - start, 2)
+    metrics["command"] = command
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
     if not quiet:
