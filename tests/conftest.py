@@ -11,3 +11,10 @@ CACHE = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(pref
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+
+
+def pytest_collection_modifyitems(items):
+    """The longest file first (its module-scoped reproduction and subprocess runs take about half the
+    suite), so that with `-n 2 --dist loadfile` (pyproject.toml) the other worker takes every other file
+    meanwhile. Within a file the order is kept."""
+    items.sort(key=lambda item: item.nodeid.split("::")[0] != "tests/test_reproduce.py")

@@ -50,73 +50,54 @@ def test_train_bad_input_is_one_line_before_compiling(argv, message, tmp_path, c
     assert not (tmp_path / "x" / "metrics.json").exists()
 
 
-# A second map: three rooms, no room called "bottom" (the two-rooms map's settings must not leak onto it).
-THREE_ROOMS = """\
+# A second map (the README's example): no room called "bottom", so the two-rooms map's settings must not
+# leak onto it; small, so that its planner and figures take no time.
+OFFICE = """\
 V..#....#..V
-...#....#...
 .......A....
 ...#....#...
 ####....####
 .....A......
-...#....#...
-V..#....#...
 """
-THREE_ROOMS_REGIONS = """\
+OFFICE_REGIONS = """\
 L left_room room
 H hall_way hall
 R right_room room
-S south_room room
 ---
-LLL#HHHH#RRR
 LLL#HHHH#RRR
 LLLHHHHHHRRR
 LLL#HHHH#RRR
 ####HHHH####
-SSSHHHHHHHHH
-SSS#HHHH#HHH
-SSS#HHHH#HHH
+HHHHHHHHHHHH
 """
 
 
-def write_three_rooms(folder) -> str:
-    (folder / "three.txt").write_text(THREE_ROOMS)
-    (folder / "three.regions.txt").write_text(THREE_ROOMS_REGIONS)
-    return str(folder / "three.txt")
+def write_office(folder) -> str:
+    (folder / "office.txt").write_text(OFFICE)
+    (folder / "office.regions.txt").write_text(OFFICE_REGIONS)
+    return str(folder / "office.txt")
 
 
 def sets(*kvs: str) -> list[str]:
     return [arg for kv in kvs for arg in ("--set", kv)]
 
 
-TINY = {  # per listed algorithm: a budget that runs in seconds (hierarchical: on the second map)
-    "iql": IQL_TINY,
-    "doc": sets("doc.options=[2]", "train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
-                "env.horizon=100"),
-    "hierarchical": sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
-                         "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4"),
-}
-
-
-def test_the_listed_algorithms_are_the_registry():
+def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(tmp_path, capsys):
+    """What `jaxusar train --help` lists trains on a tiny budget: iql above, doc in
+    tests/test_option_critic.py (test_runner_learns_to_triage_on_a_tiny_map_and_writes_results), and the
+    paper's method here, with its default config, on a map without the two-rooms map's task names."""
     from jaxusar import algos
 
-    assert sorted(algos.registry()) == sorted(TINY) == ["doc", "hierarchical", "iql"]
+    assert sorted(algos.registry()) == ["doc", "hierarchical", "iql"]
     assert algos.registry()["hierarchical"].__name__ == "jaxusar.algos.coordinator"
-
-
-@pytest.mark.parametrize("algo", sorted(TINY))
-def test_every_listed_algorithm_trains_from_the_cli(algo, tmp_path, capsys):
-    """What `jaxusar train --help` lists trains on a tiny budget; the default hierarchical config runs on a
-    map without the two-rooms map's task names."""
-    out = tmp_path / algo
-    extra = ["--map", write_three_rooms(tmp_path)] if algo == "hierarchical" else []
-    assert main(["train", algo, "--trials", "1", "--out", str(out), "--quiet"] + extra + TINY[algo]) == 0
+    out = tmp_path / "hierarchical"
+    assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet", "--map", write_office(tmp_path)]
+                + sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
+                       "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4")) == 0
     m = json.loads((out / "metrics.json").read_text())
-    per_trial = m["per_options"]["2"] if algo == "doc" else m  # doc: one run per number of options
-    assert m["config"]["algo"] == algo and len(per_trial["episodes_to_optimal"]) == 1
-    if algo == "hierarchical":
-        assert m["config"]["env"]["map"].endswith("three.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
-        assert m["optimal_team_steps"] > 0 and len(m["tasks"]) == 9  # 2 medics x 3 rooms + 3 victims
+    assert m["config"]["algo"] == "hierarchical" and len(m["episodes_to_optimal"]) == 1
+    assert m["config"]["env"]["map"].endswith("office.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
+    assert m["optimal_team_steps"] == 11 and len(m["tasks"]) == 6  # 2 medics x 2 rooms + 2 victims
     assert "Traceback" not in capsys.readouterr().err
 
 
@@ -134,18 +115,18 @@ def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
 
     defaults = {"algo": "hierarchical", **coordinator.DEFAULTS}
     assert config.load(defaults=defaults).hierarchical.task_gamma == {"TRIAGE-BOTTOM-VICTIM": 0.9}  # two_rooms'
-    path = write_three_rooms(tmp_path)
+    path = write_office(tmp_path)
     assert config.load(None, [f"env.map={path}"], defaults).hierarchical.task_gamma == {}
     # a map's own settings file beside its layout; a config file and --set still override it; {} clears
-    (tmp_path / "three.settings.yaml").write_text("hierarchical:\n  task_gamma: {TRIAGE-LEFT-VICTIM: 0.8}\n")
+    (tmp_path / "office.settings.yaml").write_text("hierarchical:\n  task_gamma: {TRIAGE-LEFT-VICTIM: 0.8}\n")
     assert config.load(None, [f"env.map={path}"], defaults).hierarchical.task_gamma == {"TRIAGE-LEFT-VICTIM": 0.8}
     cleared = config.load(None, [f"env.map={path}", "hierarchical.task_gamma={}"], defaults)
     assert cleared.hierarchical.task_gamma == {}
-    (tmp_path / "three.settings.yaml").write_text("hierarchical:\n  task_gama: {}\n")
-    with pytest.raises(config.ConfigError, match="three.settings.yaml.*task_gama"):
+    (tmp_path / "office.settings.yaml").write_text("hierarchical:\n  task_gama: {}\n")
+    with pytest.raises(config.ConfigError, match="office.settings.yaml.*task_gama"):
         config.load(None, [f"env.map={path}"], defaults)
     # a task name the map lacks: one line naming the map's tasks and the fix, before anything compiles
-    (tmp_path / "three.settings.yaml").unlink()
+    (tmp_path / "office.settings.yaml").unlink()
     with pytest.raises(SystemExit) as e:
         main(["train", "hierarchical", "--map", path, "--set", "hierarchical.task_gamma={TRIAGE-BOTTOM-VICTIM: 0.9}",
               "--out", str(tmp_path / "x")])

@@ -104,7 +104,7 @@ def test_pseudo_reward_env(two_rooms):
     kb = [t.name for t in tasks].index("TRIAGE-BOTTOM-VICTIM")
     assert float(params.gamma[kb]) == pytest.approx(0.9)
     assert params.solid[kb][8, 13] and not params.solid[kb][0, 0]  # only its own victim is kept
-    with pytest.raises(ConfigError, match="unknown task"):
+    with pytest.raises(ConfigError, match="TRIAGE-NOWHERE.*does not have.*task_gamma={}"):
         sp.task_params(env, opts, tasks, 0.99, {"TRIAGE-NOWHERE": 0.5})
 
 

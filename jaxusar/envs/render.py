@@ -217,7 +217,7 @@ def save_episode_strip(env: USAREnv, states, path, titles=None, max_frames: int 
                loc="outside lower center", ncol=len(entries), frameon=False, fontsize=9, handlelength=1.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=100)
     return path
 
 
