@@ -11,6 +11,7 @@ import argparse
 import json
 import shlex
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -153,13 +154,21 @@ def add_run_arguments(p) -> None:
     p.add_argument("--checkpoint-every", type=float, default=60.0, metavar="SECONDS",
                    help="seconds between checkpoints of the training state (default 60; 0: after every chunk)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--no-compile-cache", action="store_true",
+                   help="compile every program afresh (default: JAX's persistent compilation cache in "
+                        "~/.cache/jaxusar/xla or $JAX_COMPILATION_CACHE_DIR, so a second run loads its programs; "
+                        "JAXUSAR_COMPILE_CACHE=0 also turns it off)")
 
 
 def check_run_arguments(args: argparse.Namespace) -> None:
+    """Check what every training command takes, then turn on the compilation cache (before any compile)."""
+    from jaxusar.experiments.usage import enable_compile_cache
+
     if args.checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every must be >= 0 seconds, got {args.checkpoint_every:g}")
     if args.trials < 1:
         raise UsageError(f"--trials must be >= 1, got {args.trials}")
+    enable_compile_cache(not args.no_compile_cache)
 
 
 def parse_options(text: str | None) -> tuple[int, ...] | None:
@@ -285,9 +294,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"jaxusar: warning: {message}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``jaxusar COMMAND ...``; returns the exit status (bad input raises SystemExit(2))."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    warnings.showwarning = _one_line_warning
     args = build_parser().parse_args(argv)
     args.command_line = "jaxusar " + shlex.join(argv)  # recorded in metrics.json / results.json
     try:

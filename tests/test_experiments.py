@@ -185,3 +185,47 @@ def test_a_forks_learner_file_trains_from_the_cli(tmp_path):
     broken = jaxusar("train", "double_iql", "--out", str(tmp_path / "x"))
     assert broken.returncode == 2 and "double_iql.py" in broken.stderr and "NameError" in broken.stderr
     assert "Traceback" not in broken.stderr
+
+
+def test_an_unwritable_compile_cache_folder_is_a_warning(tmp_path):
+    import jax
+
+    from jaxusar.experiments.usage import enable_compile_cache
+
+    before = jax.config.jax_compilation_cache_dir
+    (tmp_path / "a_file").write_text("")
+    with pytest.warns(UserWarning, match="cannot be written.*without the cache"):
+        assert enable_compile_cache(folder=tmp_path / "a_file" / "xla") is None
+    assert jax.config.jax_compilation_cache_dir == before  # untouched: the run goes on as before
+    assert enable_compile_cache(enabled=False) is None
+
+
+def test_a_second_run_loads_its_programs_and_a_corrupted_cache_is_a_warning(tmp_path):
+    """The persistent compilation cache is on by default: the same command again compiles nothing; with
+    every cache entry corrupted it warns, compiles again and gives the same numbers."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
+    out = tmp_path / "run"
+
+    def run():
+        done = subprocess.run([sys.executable, "-m", "jaxusar", "train", "iql", "--trials", "1", "--out", str(out),
+                               "--force", "--quiet"] + IQL_TINY, env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+        m = json.loads((out / "metrics.json").read_text())
+        return m, done.stderr
+
+    cold, _ = run()
+    assert cold["usage"]["programs_compiled"] == cold["usage"]["programs"] > 0
+    assert cold["usage"]["compile_cache"] == str(tmp_path / "cache") and cold["usage"]["peak_rss_mb"] > 0
+    warm, _ = run()
+    assert warm["usage"]["programs_loaded_from_cache"] == warm["usage"]["programs"] == cold["usage"]["programs"]
+    assert warm["usage"]["programs_compiled"] == 0 and warm["episodes_to_optimal"] == cold["episodes_to_optimal"]
+    for entry in (tmp_path / "cache").rglob("*"):
+        if entry.is_file():
+            entry.write_bytes(b"not an executable")
+    again, err = run()
+    assert "jaxusar: warning:" in err and "cache" in err and "Traceback" not in err
+    assert again["usage"]["programs_compiled"] > 0 and again["best_test_return"] == cold["best_test_return"]

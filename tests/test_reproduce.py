@@ -34,7 +34,7 @@ ALGOS = ("hierarchical", "doc/K2", "iql")
 def without_timings(results: dict) -> dict:
     """results.json minus what legitimately differs between two runs of one command (seconds, resume)."""
     rows = {k: {f: v for f, v in r.items() if f != "seconds"} for k, r in results["algorithms"].items()}
-    where = ("resumed", "devices_per_trainer", "processes", "environment", "command")
+    where = ("resumed", "devices_per_trainer", "processes", "environment", "command", "usage")
     return {**{k: v for k, v in results.items() if not k.startswith(("wall_seconds", "seconds")) and k not in where},
             "algorithms": rows}
 

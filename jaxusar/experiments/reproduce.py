@@ -39,6 +39,7 @@ from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments import train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.stats import summarize
+from jaxusar.experiments.usage import Usage
 
 ALGORITHMS = ("hierarchical", "doc", "iql")
 
@@ -87,7 +88,7 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
         devices=None, command: str | None = None) -> dict:
     """Everything above; returns the results.json dict (in every process; only process 0 writes).
     ``command``: the command line that ran it, for results.json (default: one that gives the same run)."""
-    start = time.perf_counter()
+    start, usage = time.perf_counter(), Usage()
     cfgs = configs(quick, sets)  # bad settings fail here, before anything compiles
     keys = train.trial_keys(cfgs["iql"].seed, trials, devices)
     if len({c.seed for c in cfgs.values()}) != 1:
@@ -136,6 +137,7 @@ def run(trials: int = 8, out: str | Path = "results/two_rooms", quick: bool = Fa
         + [a for s in sets or [] for a in ("--set", s)])
     results["seconds_by_algorithm"] = seconds
     results["wall_seconds"] = round(time.perf_counter() - start, 2)
+    results["usage"] = usage.report()
     results["wall_seconds_training"] = round(train_seconds, 2)
     results["workers"] = n_workers
     results["devices_per_trainer"] = len(trial_devices(devices))

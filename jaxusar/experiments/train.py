@@ -40,6 +40,7 @@ from jaxusar.core import Trainer
 from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments.runner import Outcome, Runner, Stage, gather
 from jaxusar.experiments.stats import in_words, summarize
+from jaxusar.experiments.usage import Usage
 from jaxusar.experiments.plots import reward_range, training_figure
 
 
@@ -198,7 +199,7 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
     Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics;
     ``command`` (the command line that ran it) is recorded in them.
     """
-    start = time.perf_counter()
+    start, usage = time.perf_counter(), Usage()
     keys = trial_keys(cfg.seed, trials, devices)
     out = prepare_out(out, force)
     exp = experiment(cfg, keys, **extra)
@@ -210,6 +211,7 @@ def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False
     metrics = exp.finish(out, outcomes, quiet)
     metrics["wall_seconds"] = round(time.perf_counter() - start, 2)
     metrics["command"] = command
+    metrics["usage"] = usage.report()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
     if not quiet:
