@@ -31,8 +31,7 @@ import jax
 import numpy as np
 import yaml
 
-from jaxusar import config
-from jaxusar.algos import coordinator as coord
+from jaxusar import algos, config
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.train import cpu_name
 
@@ -40,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def subpolicies(seed: int, trials: int, sets: list[str]) -> dict:
-    cfg = config.load(None, sets + [f"seed={seed}"], defaults={"algo": "hierarchical", **coord.DEFAULTS})
+    cfg = config.load(None, sets + [f"seed={seed}"], defaults=algos.defaults("hierarchical"))
     exp = hierarchical.Experiment(cfg, jax.random.split(jax.random.PRNGKey(seed), trials))
     stage = exp.chains[0][0]
     start = time.perf_counter()

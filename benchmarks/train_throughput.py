@@ -24,7 +24,8 @@ import jax.numpy as jnp
 
 from jaxusar import config
 from jaxusar.core import replay as rb
-from jaxusar.experiments.train import algorithm_module, build, environment_info
+from jaxusar import algos
+from jaxusar.experiments.train import build, environment_info
 
 
 def timed(fn, *args, repeats=3):
@@ -120,8 +121,7 @@ def main(argv=None):
     p.add_argument("--chunks", type=int, default=3, help="timed chunks after the compile chunk")
     p.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = p.parse_args(argv)
-    module = algorithm_module(args.algo)
-    cfg = config.load(args.config, args.sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
+    cfg = config.load(args.config, args.sets, defaults=algos.defaults(args.algo))
     _, _, _, trainer = build(cfg)
     tr, state = trainer_throughput(trainer, args.trials, args.chunks)
     ceiling = update_ceiling(trainer, state, args.trials, updates=trainer.iters)

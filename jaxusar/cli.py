@@ -184,16 +184,15 @@ def parse_options(text: str | None) -> tuple[int, ...] | None:
 
 
 def train(args: argparse.Namespace) -> int:
-    from jaxusar import config
+    from jaxusar import algos, config
     from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import train as experiment
 
     check_run_arguments(args)
     try:
-        module = experiment.algorithm_module(args.algo)
         sets = ([f"env.map={json.dumps(args.map)}"] if args.map is not None else []) + args.sets
-        cfg = config.load(args.config, sets, defaults={"algo": args.algo, **getattr(module, "DEFAULTS", {})})
+        cfg = config.load(args.config, sets, defaults=algos.defaults(args.algo))
         if cfg.algo != args.algo:
             raise config.ConfigError(f"the config is for algo {cfg.algo!r} but the command trains {args.algo!r}; "
                                      f"to start from that file's settings, add --set algo={args.algo}")

@@ -301,7 +301,8 @@ def map_settings(data: dict) -> dict:
     """The settings file of the map that ``data`` (a config dict) runs on, or {} (envs/layout.py)."""
     from jaxusar.envs.layout import settings_path
 
-    name = data.get("env", {}).get("map", EnvConfig.map) if isinstance(data.get("env", {}), dict) else None
+    env = data.get("env", {})
+    name = env.get("map", EnvConfig.map) if isinstance(env, dict) else None
     path = settings_path(name) if isinstance(name, str) else None
     if path is None:
         return {}

@@ -377,14 +377,13 @@ def test_shipped_configs_equal_the_algorithm_defaults():
     """configs/<algo>.yaml spell out exactly what `jaxusar train <algo>` runs without --config."""
     from pathlib import Path
 
-    from jaxusar.experiments.train import algorithm_module
+    from jaxusar import algos
 
     paths = sorted((Path(__file__).parents[1] / "configs").glob("*.yaml"))
     assert paths
     for path in paths:
         cfg = config.load(path)
-        module = algorithm_module(cfg.algo)
-        assert cfg == config.load(defaults={"algo": cfg.algo, **getattr(module, "DEFAULTS", {})}), path.name
+        assert cfg == config.load(defaults=algos.defaults(cfg.algo)), path.name
 
 
 def test_episodes_to_optimal_in_words():

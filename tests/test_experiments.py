@@ -91,7 +91,8 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(tmp
     assert sorted(algos.registry()) == ["doc", "hierarchical", "iql"]
     assert algos.registry()["hierarchical"].__name__ == "jaxusar.algos.coordinator"
     out = tmp_path / "hierarchical"
-    assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet", "--map", write_office(tmp_path)]
+    assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet",
+                 "--map", write_office(tmp_path)]
                 + sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
                        "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4")) == 0
     m = json.loads((out / "metrics.json").read_text())
@@ -110,10 +111,9 @@ def test_modules_that_are_parts_of_an_algorithm_are_not_trainable(name, capsys):
 
 
 def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
-    from jaxusar import config
-    from jaxusar.algos import coordinator
+    from jaxusar import algos, config
 
-    defaults = {"algo": "hierarchical", **coordinator.DEFAULTS}
+    defaults = algos.defaults("hierarchical")
     assert config.load(defaults=defaults).hierarchical.task_gamma == {"TRIAGE-BOTTOM-VICTIM": 0.9}  # two_rooms'
     path = write_office(tmp_path)
     assert config.load(None, [f"env.map={path}"], defaults).hierarchical.task_gamma == {}

@@ -61,6 +61,11 @@ def algorithm(name: str) -> ModuleType:
     return known[name]
 
 
+def defaults(name: str) -> dict:
+    """The config defaults of algorithm ``name``: ``{"algo": name}`` and its module's ``DEFAULTS``."""
+    return {"algo": name, **getattr(algorithm(name), "DEFAULTS", {})}
+
+
 def describe(module: ModuleType) -> str:
     """One line on an algorithm: its ``DESCRIPTION``, else its docstring's first line."""
     return getattr(module, "DESCRIPTION", None) or ((module.__doc__ or "").strip().splitlines() or [""])[0]

@@ -120,7 +120,8 @@ class DQN:
     ``reward``, ``discount`` and ``next_obs`` as ``replay.sample_returns`` makes them (``cfg.n_step``).
     A row needs ``reward``, ``terminal``, ``done`` and ``next_obs``; its ``gamma`` defaults to
     ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. Observations are stored as uint8
-    when ``binary_obs`` (the env's one-hot features): 4x smaller rows. The learning rate follows ``cfg.lr_schedule`` over gradient updates.
+    when ``binary_obs`` (the env's one-hot features): 4x smaller rows. The learning rate follows
+    ``cfg.lr_schedule`` over gradient updates.
     """
 
     def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,

@@ -69,8 +69,8 @@ def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = Non
 
     Floor light grey, walls black, obstacles dark grey, victims green (triaged: pale green with a dark
     check mark), medics blue with a white arrow for the facing direction. Medics and victims carry their
-    index in the top-left corner (``label_size`` points). ``trail``: optional int[T, n_agents, 2] of earlier positions, drawn as a
-    faint path per medic. ``legend``: a key to the colours below the map.
+    index in the top-left corner (``label_size`` points). ``trail``: optional int[T, n_agents, 2] of
+    earlier positions, drawn as a faint path per medic. ``legend``: a key to the colours below the map.
     """
     from matplotlib.patches import Polygon, Rectangle
 
@@ -120,8 +120,9 @@ def render_state(env: USAREnv, state: EnvState, ax=None, title: str | None = Non
 def _corner_label(ax, r, c, index: int, color: str, size: float) -> None:
     from matplotlib import patheffects
 
+    outline = patheffects.withStroke(linewidth=1.5, foreground="#202020" if color == "white" else "white")
     ax.text(c - 0.44, r - 0.44, str(index), color=color, fontsize=size, fontweight="bold", ha="left", va="top",
-            zorder=5, path_effects=[patheffects.withStroke(linewidth=1.5, foreground="#202020" if color == "white" else "white")])
+            zorder=5, path_effects=[outline])
 
 
 def _legend_entries(trail: bool = False) -> dict:
@@ -141,13 +142,14 @@ def _legend_entries(trail: bool = False) -> dict:
     return entries
 
 
-def _legend(ax) -> None:
+def _legend(owner, trail: bool = False, **placement) -> None:
+    """The colour key in one row, on an Axes (below the map) or a Figure (``placement``: where)."""
     from matplotlib.legend_handler import HandlerTuple
 
-    entries = _legend_entries()
-    ax.legend(list(entries.values()), list(entries), handler_map={tuple: HandlerTuple(ndivide=1)},
-              loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=len(entries), frameon=False, fontsize=8,
-              handlelength=1.0, columnspacing=1.4)
+    entries = _legend_entries(trail)
+    placement = placement or {"loc": "upper center", "bbox_to_anchor": (0.5, -0.02), "fontsize": 8}
+    owner.legend(list(entries.values()), list(entries), handler_map={tuple: HandlerTuple(ndivide=1)},
+                 ncol=len(entries), frameon=False, handlelength=1.0, columnspacing=1.4, **placement)
 
 
 def _unstack(states) -> list[EnvState]:
@@ -210,11 +212,7 @@ def save_episode_strip(env: USAREnv, states, path, titles=None, max_frames: int 
         ax.set_axis_off()
     if lines:
         fig.suptitle("\n".join(lines), fontsize=11)
-    from matplotlib.legend_handler import HandlerTuple
-
-    entries = _legend_entries(trail=True)
-    fig.legend(list(entries.values()), list(entries), handler_map={tuple: HandlerTuple(ndivide=1)},
-               loc="outside lower center", ncol=len(entries), frameon=False, fontsize=9, handlelength=1.0)
+    _legend(fig, trail=True, loc="outside lower center", fontsize=9)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

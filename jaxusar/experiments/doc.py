@@ -28,7 +28,8 @@ from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import reward_range, training_figure
 from jaxusar.experiments.runner import Stage
-from jaxusar.experiments.train import environment_info, flat_metrics, in_words, write_trial_files
+from jaxusar.experiments.stats import in_words
+from jaxusar.experiments.train import environment_info, flat_metrics, write_trial_files
 
 
 class Experiment:

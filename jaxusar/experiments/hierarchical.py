@@ -34,7 +34,8 @@ from jaxusar.config import ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import band, band_key, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
-from jaxusar.experiments.train import environment_info, in_words, stage_seconds, summarize
+from jaxusar.experiments.stats import in_words, summarize
+from jaxusar.experiments.train import environment_info, stage_seconds
 
 
 def build(cfg: ExperimentConfig):
@@ -220,10 +221,10 @@ class Experiment:
         write_outputs(out, b, sub, co, best_sub, metrics)
         if not quiet:
             budget = n_tasks * cfg.train.episodes + cfg.hierarchical.coordinator.episodes
-            single = [p["single_start_total"] for p in per_trial]
             print(f"[hierarchical] end to end (sub-policy episodes + the coordinator's): {in_words(eto, budget)}.\n"
                   f"[hierarchical] with each sub-policy judged by the paper's single-start test: "
-                  f"{in_words(single, budget)}.\n[hierarchical] the coordinator over its trial's sub-policies: "
+                  f"{in_words(metrics['episodes_to_optimal_single_start'], budget)}.\n"
+                  f"[hierarchical] the coordinator over its trial's sub-policies: "
                   f"{in_words(co['episodes_to_optimal'], cfg.hierarchical.coordinator.episodes)}.", flush=True)
         return metrics
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxusar import config
+from jaxusar import algos, config
 from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments import train
 from jaxusar.experiments.runner import Runner, gather
@@ -70,9 +70,8 @@ def configs(quick: bool = False, sets: list[str] | None = None) -> dict[str, con
             own[a].append(s if head not in ALGORITHMS else s.split(".", 1)[1])
     out = {}
     for a in ALGORITHMS:
-        module = train.algorithm_module(a)
         try:
-            out[a] = config.load(None, own[a], defaults={"algo": a, **getattr(module, "DEFAULTS", {})})
+            out[a] = config.load(None, own[a], defaults=algos.defaults(a))
         except config.ConfigError as err:
             raise config.ConfigError(f"{a}: {err}") from None
     return out

@@ -39,14 +39,9 @@ from jaxusar.config import ConfigError, ExperimentConfig
 from jaxusar.core import Trainer
 from jaxusar.core.trainer import trial_devices
 from jaxusar.experiments.runner import Outcome, Runner, Stage, gather
+from jaxusar.experiments.plots import reward_range, training_figure
 from jaxusar.experiments.stats import in_words, summarize
 from jaxusar.experiments.usage import Usage
-from jaxusar.experiments.plots import reward_range, training_figure
-
-
-def algorithm_module(name: str):
-    """The module of algorithm ``name`` (``jaxusar.algos.registry``: adding a learner = adding one file)."""
-    return algos.algorithm(name)
 
 
 def environment_info() -> dict:
@@ -68,14 +63,15 @@ def cpu_name() -> str:
 def print_progress(name: str, p: dict) -> None:
     """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk)."""
     print(f"[{name}] chunk {p['chunk']}: episodes done {p['episodes_min']}/{p['episodes_total']} in the slowest "
-          f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, about {p['eta']:.0f} s to go", flush=True)
+          f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, about {p['eta']:.0f} s to go",
+          flush=True)
 
 
 def build(cfg: ExperimentConfig):
     """env, planner optimum, learner, trainer for a flat (non-hierarchical) algorithm."""
     env = envs.make(cfg.env.map, **cfg.env.overrides())
     optimal = planning.optimal_team_steps(env)
-    learner = algorithm_module(cfg.algo).make_learner(env, cfg.dqn)
+    learner = algos.algorithm(cfg.algo).make_learner(env, cfg.dqn)
     trainer = Trainer(env, learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
                       train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=optimal)
     return env, optimal, learner, trainer
@@ -180,7 +176,7 @@ class FlatExperiment:
 
 def experiment(cfg: ExperimentConfig, keys: jax.Array, **extra):
     """The experiment object of ``cfg.algo``: its ``EXPERIMENT`` module's, else a FlatExperiment."""
-    name = getattr(algorithm_module(cfg.algo), "EXPERIMENT", None)
+    name = getattr(algos.algorithm(cfg.algo), "EXPERIMENT", None)
     if name is None:
         if extra:
             raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}")
