@@ -33,7 +33,7 @@ import yaml
 
 from jaxusar import algos, config
 from jaxusar.experiments import hierarchical
-from jaxusar.experiments.train import cpu_name
+from jaxusar.experiments.train import cpu_name, print_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +43,8 @@ def subpolicies(seed: int, trials: int, sets: list[str]) -> dict:
     exp = hierarchical.Experiment(cfg, jax.random.split(jax.random.PRNGKey(seed), trials))
     stage = exp.chains[0][0]
     start = time.perf_counter()
-    state = stage.trainer.train(stage.keys, env_params=stage.env_params)
+    state = stage.trainer.train(stage.keys, env_params=stage.env_params,
+                                progress=lambda info: print_progress(stage.name, info))
     r = stage.trainer.results(jax.block_until_ready(state))
     wall = time.perf_counter() - start
     names = [t.name for t in exp.b["tasks"]]

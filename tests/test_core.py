@@ -53,6 +53,58 @@ def test_replay_under_vmap():
     np.testing.assert_array_equal(jax.vmap(rb.sample)(bufs, jnp.full((3, 2), 0.5))["x"], [[1, 1], [2, 2], [3, 3]])
 
 
+def test_one_hot_codec_is_lossless_on_every_env_observation():
+    """Replay rows store one integer per one-hot block; decoding gives back the env's exact features for
+    random states of the team env and of a sub-task env with the cell input."""
+    from jaxusar.algos import subpolicies as sp
+    env = envs.make("two_rooms")
+    rng = np.random.default_rng(0)
+    n = 64
+    states = envs.EnvState(agent_pos=jnp.asarray(rng.integers(0, [env.height, env.width], (n, env.n_agents, 2)), jnp.int32),
+                           agent_dir=jnp.asarray(rng.integers(0, 4, (n, env.n_agents)), jnp.int32),
+                           triaged=jnp.asarray(rng.integers(0, 2, (n, env.n_victims)), bool),
+                           t=jnp.zeros((n,), jnp.int32))
+    task = sp.SubtaskEnv(env, 50, features="cell")
+    cases = [(env.obs_blocks, jax.vmap(env.observe)(states)),
+             (task.obs_blocks, jax.vmap(task.observe)(states.agent_pos[:, 0], states.agent_dir[:, 0],
+                                                        states.triaged[:, 0]))]
+    for blocks, obs in cases:
+        codec = rb.OneHotCodec(blocks)
+        codes = codec.encode(obs)
+        assert codes.shape == (n, len(blocks)) and codes.dtype == (jnp.uint16 if max(blocks) > 255 else jnp.uint8)
+        np.testing.assert_array_equal(codec.decode(codes), obs)
+    wide = rb.OneHotCodec((300, 2))  # a block wider than 255 (the cell input of a 20 x 30 map): uint16
+    obs = jnp.concatenate([jax.nn.one_hot(jnp.array([0, 299, 7]), 300), jax.nn.one_hot(jnp.array([1, 0, 1]), 2)], -1)
+    assert wide.encode(obs).dtype == jnp.uint16
+    np.testing.assert_array_equal(wide.decode(wide.encode(obs)), obs)
+    zeros = rb.OneHotCodec((3, 1, 2))  # an all-zero block is stored as its width
+    np.testing.assert_array_equal(zeros.encode(jnp.array([0, 0, 0, 1, 0, 1.0])), [3, 0, 1])
+    np.testing.assert_array_equal(zeros.decode(zeros.encode(jnp.array([0, 0, 0, 1, 0, 1.0]))), [0, 0, 0, 1, 0, 1])
+    with pytest.raises(ValueError, match="sum to 6"):
+        zeros.encode(jnp.zeros(5))
+
+
+def test_compact_rows_train_bit_identically_to_full_rows():
+    """The same trials with observations stored as uint8 features or as one-hot indices: every number
+    equal, parameters included; the compact row is a fraction of the full one."""
+    from jaxusar.core.learners import dqn_target
+    _, _, tr = _tiny_trainer(episodes=30)
+    env, cfg = tr.env, tr.learner.cfg
+    keys = jax.random.split(jax.random.PRNGKey(5), 2)
+    compact = tr.train(keys)
+    full_learner = IndependentDQN(env.obs_dim, 4, env.n_agents, cfg, dqn_target(cfg))
+    tr_full = Trainer(env, full_learner, tr.cfg, learning_starts=cfg.learning_starts, train_every=cfg.train_every,
+                      optimal_steps=tr.optimal_steps)
+    full = tr_full.train(keys)
+    a, b = tr.results(compact), tr_full.results(full)
+    for name in ("train_return", "train_length", "test_return", "test_length", "best_test"):
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    for x, y in zip(jax.tree.leaves(compact.trials.learner.params), jax.tree.leaves(full.trials.learner.params)):
+        np.testing.assert_array_equal(x, y)
+    one = lambda st: jax.tree.map(lambda x: x[0, 0], st.trials.learner.replay)
+    assert rb.row_bytes(one(compact)) + 2 * (env.obs_dim - len(env.obs_blocks)) == rb.row_bytes(one(full))
+
+
 def _decode_single(env, obs):
     """Inverse of env.observe for a one-agent env: (pos, dir, triaged)."""
     h, w = env.height, env.width
@@ -70,13 +122,13 @@ def test_sampled_next_obs_is_the_step_after_obs():
     trainer = Trainer(env, learner, cfg.train, learning_starts=100, train_every=4, optimal_steps=17)
     state = trainer.train(jax.random.split(jax.random.PRNGKey(3), 1))
     buf = jax.tree.map(lambda x: x[0, 0], state.trials.learner.replay)  # trial 0, learner 0
-    batch = rb.sample(buf, jax.random.uniform(jax.random.PRNGKey(1), (64,)))
+    batch = learner.dqn.expand(rb.sample(buf, jax.random.uniform(jax.random.PRNGKey(1), (64,))))
     step = jax.jit(env.step)
     for i in range(64):
         pos, d, tri = _decode_single(env, batch["obs"][i])
         s = envs.EnvState(jnp.asarray(pos, jnp.int32), jnp.asarray(d, jnp.int32), jnp.asarray(tri), jnp.int32(0))
         nxt, _, r, _, info = step(None, s, jnp.asarray([batch["action"][i]]))
-        np.testing.assert_array_equal(np.asarray(nxt, np.uint8), batch["next_obs"][i])
+        np.testing.assert_array_equal(nxt, batch["next_obs"][i])
         assert float(r) == float(batch["reward"][i])
         assert bool(info["terminated"]) == bool(batch["terminal"][i])
 

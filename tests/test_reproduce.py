@@ -108,6 +108,28 @@ def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
         runner.run([[stage]])
 
 
+def test_a_checkpoint_from_before_compact_replay_rows_is_refused(tmp_path):
+    """A format-1 checkpoint (replay rows holding the observation features) is never read as today's rows:
+    refused, naming its format and --force."""
+    from flax import serialization
+
+    from jaxusar import config
+    from jaxusar.experiments.runner import Runner, Stage
+    from jaxusar.experiments.train import build
+
+    cfg = config.load(sets=["train.episodes=10", "train.test_every=10", "env.horizon=40", "train.chunk_steps=400"])
+    trainer = build(cfg)[3]
+    stage = Stage("iql", trainer, jax.random.split(jax.random.PRNGKey(0), 2))
+    runner = Runner(tmp_path, fingerprint="this-run")
+    leaves = jax.tree.leaves(trainer.init(stage.keys))
+    meta = {"fingerprint": "this-run", "stage": "iql", "chunk": 1, "run_seconds": 1.0, "finished": False}
+    runner.path(stage).parent.mkdir(parents=True, exist_ok=True)
+    runner.path(stage).write_bytes(serialization.msgpack_serialize(
+        {"format": 1, "meta": meta, "leaves": {str(i): np.asarray(x) for i, x in enumerate(leaves)}}))
+    with pytest.raises(CheckpointError, match="format 1.*--force"):
+        runner.run([[stage]])
+
+
 # -- the command ------------------------------------------------------------------------------------
 def test_reproduce_writes_the_table_figures_and_statistics(reference, capsys):
     r = json.loads((reference / "results.json").read_text())

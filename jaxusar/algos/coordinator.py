@@ -84,7 +84,8 @@ class MacroEnv:
         self.n_agents, self.horizon = env.n_agents, env.horizon
         self.n_regions = env.graph.n_regions
         self.n_joint = options.n ** env.n_agents
-        self.obs_dim = env.n_agents * self.n_regions + env.n_victims
+        self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims  # one-hot widths
+        self.obs_dim = sum(self.obs_blocks)
         # joint option index -> per-agent options (agent 0 most significant)
         self.joint = np.array(list(itertools.product(range(options.n), repeat=env.n_agents)), np.int32)
 
@@ -181,4 +182,4 @@ def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
 
     dqn = coordinator_dqn(cfg)
     return IndependentDQN(macro.obs_dim, macro.n_joint, 1, dqn, dqn_target(dqn, macro.valid_joint), row_fn=row,
-                          valid_fn=macro.valid_joint, mask_greedy=False)
+                          valid_fn=macro.valid_joint, mask_greedy=False, obs_blocks=macro.obs_blocks)

@@ -17,4 +17,4 @@ ALGORITHM = "iql"
 
 
 def make_learner(env: USAREnv, cfg: DQNConfig) -> IndependentDQN:
-    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg))
+    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg), obs_blocks=env.obs_blocks)

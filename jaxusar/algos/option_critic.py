@@ -220,13 +220,14 @@ def _critic_needs_actor(batch, q_t_target, q_t_online):
 class OptionCritic:
     """The learner (protocol in ``jaxusar.core.learners``), for ``n_options`` = K options per agent."""
 
-    def __init__(self, obs_dim: int, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig):
+    def __init__(self, obs_dim: int, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig,
+                 obs_blocks: tuple[int, ...] | None = None):
         self.obs_dim, self.n_actions, self.n_options = obs_dim, n_actions, int(n_options)
         self.cfg, self.doc = cfg, doc
         if cfg.n_step != 1:
             raise ConfigError(f"dqn.n_step={cfg.n_step}: option-critic's U target is one-step (the options in "
                               "force may change at every step); use dqn.n_step=1")
-        self.critic = DQN(obs_dim, self.n_options ** 2, cfg, _critic_needs_actor)
+        self.critic = DQN(obs_dim, self.n_options ** 2, cfg, _critic_needs_actor, obs_blocks)
         self.actor_net = OptionActor(tuple(doc.actor_hidden), self.n_options, n_actions)
         self.actor_optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(doc.actor_lr))
         self.action_shape = (N_AGENTS,)
@@ -327,9 +328,9 @@ class OptionCritic:
     def actor_batch(self, replay: rb.Replay, u_sample: jax.Array) -> dict:
         """The rows the actor steps on (``doc.actor_data``)."""
         if self.doc.actor_data == "replay":
-            return rb.sample(replay, u_sample)  # the rows DQN.update draws from the same uniforms
+            return self.critic.expand(rb.sample(replay, u_sample))  # the rows DQN.update draws from the same uniforms
         idx = (replay.pos - 1 - jnp.arange(self.cfg.train_every)) % replay.capacity
-        return jax.tree.map(lambda store: store[idx], replay.rows)
+        return self.critic.expand(jax.tree.map(lambda store: store[idx], replay.rows))
 
     def _row(self, transition: dict) -> dict:
         options = jnp.maximum(transition["next_carry"], 0)  # the options used for this step
@@ -409,4 +410,4 @@ def make_learner(env: USAREnv, cfg: DQNConfig, doc_cfg: DOCConfig | None = None,
     if env.n_agents != N_AGENTS:
         raise ValueError(f"option-critic here is for {N_AGENTS} agents (joint options of two medics); "
                          f"the map has {env.n_agents}")
-    return OptionCritic(env.obs_dim, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg)
+    return OptionCritic(env.obs_dim, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg, env.obs_blocks)

@@ -153,7 +153,8 @@ class SubtaskEnv:
         self.horizon = int(horizon)
         self.region = env.graph.cell_region
         self.features = features
-        self.obs_dim = self.height + self.width + 4 + 1 + (self.height * self.width if features == "cell" else 0)
+        self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ())
+        self.obs_dim = sum(self.obs_blocks)
 
     def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array) -> jax.Array:
         """One agent's features (float32[obs_dim]): one-hot row, col, dir, the task's victim flag, and with
@@ -230,10 +231,10 @@ class SubtaskEnv:
         return jnp.sum(good[flat] & counted) / p.n_initiation.astype(jnp.float32)
 
 
-def make_learner(obs_dim: int, cfg: DQNConfig) -> IndependentDQN:
+def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
     """One DQN per task (the trainer's lanes); the discount comes from the task, via the replay row."""
 
     def row(transition):
         return {**default_row(transition), "gamma": transition["info"]["gamma"]}
 
-    return IndependentDQN(obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row)
+    return IndependentDQN(env.obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row, obs_blocks=env.obs_blocks)

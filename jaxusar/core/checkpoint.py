@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from flax import serialization
 
-FORMAT = 1
+FORMAT = 2  # 2: replay rows hold observations as one-hot indices (replay.OneHotCodec); 1 held the features
 
 
 class CheckpointError(RuntimeError):
@@ -61,6 +61,10 @@ def _read(path) -> dict:
         payload = serialization.msgpack_restore(Path(path).read_bytes())
     except (OSError, ValueError, TypeError) as err:
         raise CheckpointError(f"{path}: unreadable checkpoint ({err})") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a jaxusar checkpoint of format {FORMAT}")
+    if not isinstance(payload, dict) or "format" not in payload:
+        raise CheckpointError(f"{path}: not a jaxusar checkpoint")
+    if payload["format"] != FORMAT:
+        raise CheckpointError(f"{path}: a checkpoint of format {payload['format']}, written by another jaxusar "
+                              f"(this one reads format {FORMAT}: replay rows store observations compactly since "
+                              "format 2); it cannot be resumed, pass --force to start over")
     return payload

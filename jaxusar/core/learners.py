@@ -84,11 +84,14 @@ class IndependentDQN:
         holds); None = all. Random exploration only ever picks valid actions.
       mask_greedy: whether the greedy choice is restricted to valid actions too (False: the learner
         must learn validity itself, e.g. from a penalty).
+      obs_blocks: the widths of the one-hot blocks the observation is made of (``env.obs_blocks``): replay
+        rows then store one small integer per block (``replay.OneHotCodec``); None = one uint8 per feature.
     """
 
     def __init__(self, obs_dim: int, n_actions: int, n: int, cfg: DQNConfig, target_fn: Callable,
-                 row_fn: Callable = default_row, valid_fn: Callable | None = None, mask_greedy: bool = True):
-        self.dqn = DQN(obs_dim, n_actions, cfg, target_fn)
+                 row_fn: Callable = default_row, valid_fn: Callable | None = None, mask_greedy: bool = True,
+                 obs_blocks: tuple[int, ...] | None = None):
+        self.dqn = DQN(obs_dim, n_actions, cfg, target_fn, obs_blocks)
         self.cfg, self.n, self.n_actions, self.obs_dim = cfg, n, n_actions, obs_dim
         self.row_fn, self.valid_fn, self.mask_greedy = row_fn, valid_fn, mask_greedy
         self.action_shape = (n,)

@@ -119,16 +119,21 @@ class DQN:
     rule; ``batch`` holds the replay rows (``obs``, ``action`` and whatever the learner stored) with
     ``reward``, ``discount`` and ``next_obs`` as ``replay.sample_returns`` makes them (``cfg.n_step``).
     A row needs ``reward``, ``terminal``, ``done`` and ``next_obs``; its ``gamma`` defaults to
-    ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. Observations are stored as uint8
-    when ``binary_obs`` (the env's one-hot features): 4x smaller rows. The learning rate follows
+    ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. The learning rate follows
     ``cfg.lr_schedule`` over gradient updates.
+
+    Observations (``obs``, ``next_obs``) are stored compactly: with ``obs_blocks`` (the widths of the
+    one-hot blocks the env's features are made of, e.g. ``env.obs_blocks``) as one small integer per
+    block (``replay.OneHotCodec``), rebuilt exactly inside the update; without, as uint8 (binary features).
     """
 
     def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,
-                 binary_obs: bool = True):
+                 obs_blocks: tuple[int, ...] | None = None):
         self.cfg, self.obs_dim, self.n_actions = cfg, obs_dim, n_actions
         self.target_fn = target_fn
-        self.obs_dtype = jnp.uint8 if binary_obs else jnp.float32
+        self.codec = None if obs_blocks is None else rb.OneHotCodec(obs_blocks)
+        if self.codec is not None and self.codec.dim != obs_dim:
+            raise ValueError(f"obs_blocks {self.codec.sizes} sum to {self.codec.dim}, not obs_dim={obs_dim}")
         self.network = MLP(tuple(cfg.hidden), n_actions)
         self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(learning_rate(cfg)))
 
@@ -150,8 +155,13 @@ class DQN:
         if self.cfg.reward_scale != 1.0:
             row["reward"] = row["reward"] * self.cfg.reward_scale
         for k in ("obs", "next_obs"):
-            row[k] = jnp.asarray(row[k]).astype(self.obs_dtype)
+            row[k] = jnp.asarray(row[k]).astype(jnp.uint8) if self.codec is None else self.codec.encode(row[k])
         return row
+
+    def expand(self, batch: dict) -> dict:
+        """A sampled batch with its observations as the network's float32 input (``compact`` undone)."""
+        decode = (lambda x: x.astype(jnp.float32)) if self.codec is None else self.codec.decode
+        return {**batch, "obs": decode(batch["obs"]), "next_obs": decode(batch["next_obs"])}
 
     def add(self, state: DQNState, row: dict) -> DQNState:
         return state.replace(replay=rb.add(state.replay, self.compact(row)))
@@ -166,13 +176,17 @@ class DQN:
         per = optax.huber_loss(td) if self.cfg.loss == "huber" else 0.5 * td ** 2
         return per.mean()
 
+    def sample(self, state: DQNState, u_sample: jax.Array) -> dict:
+        """A replay batch with its ``cfg.n_step`` returns, observations as the network's input."""
+        return self.expand(rb.sample_returns(state.replay, u_sample, self.cfg.n_step))
+
     def update(self, state: DQNState, u_sample: jax.Array, target_fn: TargetFn | None = None) -> DQNState:
         """One gradient step on a batch drawn with the uniforms u_sample float[batch_size].
 
         ``target_fn`` overrides the learner's rule for this call: a learner whose target depends on
         other parameters (option-critic's U uses the terminations) passes a closure over them.
         """
-        batch = rb.sample_returns(state.replay, u_sample, self.cfg.n_step)
+        batch = self.sample(state, u_sample)
         grads = jax.grad(self.loss)(state.params, state.target_params, batch, target_fn or self.target_fn)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)

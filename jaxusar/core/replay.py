@@ -18,6 +18,38 @@ import jax.numpy as jnp
 from flax import struct
 
 
+class OneHotCodec:
+    """Observations made of one-hot blocks, stored as the index of each block's 1 (lossless).
+
+    ``sizes``: the widths of the blocks, in order (a block of width 1 is a flag). A block may hold at most
+    one 1 (an all-zero block is stored as its width). ``encode`` maps float/uint8[..., sum(sizes)] to
+    codes uint8[..., n_blocks] (uint16 if a block is wider than 255); ``decode`` rebuilds float32 exactly.
+    A replay row then holds a medic's row, column and facing in 3 bytes instead of H + W + 4.
+    """
+
+    def __init__(self, sizes):
+        self.sizes = tuple(int(s) for s in sizes)
+        if not self.sizes or min(self.sizes) < 1:
+            raise ValueError(f"one-hot block sizes must be >= 1, got {self.sizes}")
+        self.dim = sum(self.sizes)
+        self.dtype = jnp.uint8 if max(self.sizes) < 256 else jnp.uint16
+
+    def encode(self, obs: jax.Array) -> jax.Array:
+        obs = jnp.asarray(obs)
+        if obs.shape[-1] != self.dim:
+            raise ValueError(f"observation of width {obs.shape[-1]}, the one-hot blocks {self.sizes} sum to {self.dim}")
+        codes, start = [], 0
+        for size in self.sizes:
+            block = obs[..., start:start + size] > 0
+            codes.append(jnp.where(block.any(-1), jnp.argmax(block, -1), size))
+            start += size
+        return jnp.stack(codes, -1).astype(self.dtype)
+
+    def decode(self, codes: jax.Array) -> jax.Array:
+        return jnp.concatenate([jax.nn.one_hot(codes[..., b].astype(jnp.int32), size, dtype=jnp.float32)
+                                for b, size in enumerate(self.sizes)], -1)
+
+
 @struct.dataclass
 class Replay:
     """rows: pytree whose leaves have a leading [capacity] axis; pos: next write slot; size: filled rows."""
@@ -29,6 +61,11 @@ class Replay:
     @property
     def capacity(self) -> int:
         return jax.tree.leaves(self.rows)[0].shape[0]
+
+
+def row_bytes(buffer: Replay) -> int:
+    """Bytes one stored row takes."""
+    return sum(x.dtype.itemsize * x[0].size for x in jax.tree.leaves(buffer.rows))
 
 
 def init(example_row, capacity: int) -> Replay:

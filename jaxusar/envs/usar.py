@@ -117,6 +117,7 @@ class USAREnv:
         self.n_agents = len(layout.agent_start)
         self.n_victims = len(layout.victim_pos)
         self.obs_dim = self.n_agents * (self.height + self.width + 4) + self.n_victims
+        self.obs_blocks = (self.height, self.width, 4) * self.n_agents + (1,) * self.n_victims  # one-hot widths
         # A cell an agent may not enter: blocked or holding a victim (victims never move).
         solid = self.blocked.copy()
         solid[tuple(self.victim_pos.T)] = True

@@ -44,7 +44,7 @@ def build(cfg: ExperimentConfig):
     tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start, cfg.hierarchical.navigate_start)
     params = sp.task_params(env, options, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
     senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features)
-    sub_learner = sp.make_learner(senv.obs_dim, cfg.dqn)
+    sub_learner = sp.make_learner(senv, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
     min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
                         enumerate(t.starts for t in tasks)))
