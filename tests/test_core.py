@@ -291,6 +291,27 @@ def test_trial_equals_running_alone_and_is_deterministic():
     assert not np.array_equal(together["train_length"][0], together["train_length"][2])
 
 
+def test_finished_trials_stop_running_and_no_result_changes():
+    """Between chunks, once at most half the trials lack episodes, only those run (a power-of-two batch,
+    padded); every number equals the run that steps all trials to the end, best params included."""
+    _, _, tr = _tiny_trainer(episodes=40, **{"train.chunk_steps": 100})
+    keys = jax.random.split(jax.random.PRNGKey(2), 8)
+    calls = []
+    run_lanes = tr._lanes_chunk
+    tr._lanes_chunk = lambda state, lanes: calls.append(lanes) or run_lanes(state, lanes)
+    dropped = tr.train(keys)
+    tr.drop_finished = False
+    full = tr.train(keys)
+    assert calls and all(len(c) < 8 and len(c) & (len(c) - 1) == 0 for c in calls), calls
+    assert [c.tolist() for c in calls] == [[1, 5, 6, 8]]  # trials 1, 5, 6 and a padding lane (8: writes dropped)
+    a, b = tr.results(dropped), tr.results(full)
+    for name in ("train_return", "train_length", "test_return", "test_length", "best_test", "env_steps"):
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert a["episodes_to_optimal"] == b["episodes_to_optimal"]
+    for x, y in zip(jax.tree.leaves(a["best_params"]), jax.tree.leaves(b["best_params"])):
+        np.testing.assert_array_equal(x, y)
+
+
 def test_iql_learns_tiny_map_and_best_params_replay():
     # gamma 0.9: with no step penalty, a strong time preference is what makes the shortest plan best
     env, opt, tr = _tiny_trainer(episodes=300, **{"dqn.gamma": 0.9, "dqn.lr": 0.001, "dqn.train_every": 1})

@@ -29,8 +29,10 @@ is optimal) is judged by that instead: a test is optimal at 1.0, and the kept pa
 covering ones; the test episode's own optimality is still recorded (``test_start_optimal``).
 
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
-stepping (a vmap cannot stop one lane) but records nothing more, so its results are exactly those of
-running it alone. Episode ``i``'s return and length, test ``j`` (after training episode
+stepping within its chunk (a vmap cannot stop one lane) but records nothing more, so its results are
+exactly those of running it alone. Between chunks the host drops finished trials: once at most half of
+them still run, the next chunks run those only, gathered into a batch padded to a power of two and
+scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay. Episode ``i``'s return and length, test ``j`` (after training episode
 ``(j + 1) * test_every``), the best test's params (paper Sec. V: catastrophic forgetting) and
 ``episodes_to_optimal`` (the training-episode count at the first optimal test) are kept per trial.
 """
@@ -126,8 +128,9 @@ class Trainer:
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
                  optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None,
-                 gradient_steps: int = 1):
+                 gradient_steps: int = 1, drop_finished: bool = True):
         self.env, self.learner, self.cfg = env, learner, cfg
+        self.drop_finished = drop_finished
         self.learning_starts, self.train_every = learning_starts, train_every
         self.gradient_steps = int(gradient_steps)
         self.optimal_steps = int(optimal_steps)
@@ -144,6 +147,7 @@ class Trainer:
         self.n_slots = min(self.iters, MAX_SNAPSHOT_SLOTS)
         self.has_coverage = hasattr(env, "coverage")
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
+        self._lanes_chunk = jax.jit(self._run_lanes, donate_argnums=0)
         self._init = jax.jit(jax.vmap(self._init_trial))
 
     # -- state ----------------------------------------------------------------------------------
@@ -355,6 +359,28 @@ class Trainer:
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
         return TrainState(trials=self._evaluate(trials), step=step, chunk=state.chunk + 1)
 
+    def _run_lanes(self, state: TrainState, lanes: jax.Array) -> TrainState:
+        """One chunk of the trials ``lanes`` only (int32[B]; an index past the last trial pads the batch:
+        it runs a copy of the last trial and its results are dropped); the other trials are left as they are."""
+        part = jax.tree.map(lambda x: jnp.take(x, lanes, axis=0, mode="clip"), state.trials)
+        out = self._run_chunk(state.replace(trials=part))
+        trials = jax.tree.map(lambda x, y: x.at[lanes].set(y, mode="drop"), state.trials, out.trials)
+        return out.replace(trials=trials)
+
+    def lanes_to_run(self, state: TrainState) -> np.ndarray | None:
+        """The trials still short of their episodes, padded to a power of two, once that batch is at most
+        half of all trials; None (run them all) before, with ``drop_finished`` off, or when the trials are
+        sharded over several devices. A finished trial records nothing more (module docstring), so leaving
+        it out changes no result; the batch sizes are few (halvings), so few programs compile."""
+        if not self.drop_finished or len(state.trials.episodes.sharding.device_set) > 1:
+            return None
+        episodes = np.asarray(state.trials.episodes)
+        live = np.flatnonzero(episodes < self.cfg.episodes)
+        size = 1 << math.ceil(math.log2(max(len(live), 1)))
+        if 2 * size > len(episodes):
+            return None
+        return np.concatenate([live, np.full(size - len(live), len(episodes))]).astype(np.int32)
+
     # -- placement and compilation ---------------------------------------------------------------
     def place(self, state: TrainState, devices=None) -> TrainState:
         """Shard the trials axis of ``state`` over ``devices`` (default: every local device) with
@@ -389,7 +415,8 @@ class Trainer:
         return bool(np.min(np.asarray(state.trials.episodes)) >= self.cfg.episodes)
 
     def run_chunk(self, state: TrainState) -> TrainState:
-        return self._chunk(state)
+        lanes = self.lanes_to_run(state)
+        return self._chunk(state) if lanes is None else self._lanes_chunk(state, lanes)
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
               on_chunk: Callable | None = None, env_params=None) -> TrainState:
