@@ -32,9 +32,12 @@ Trials run until every trial has ``episodes`` training episodes; a trial that is
 stepping within its chunk (a vmap cannot stop one lane) but records nothing more, so its results are
 exactly those of running it alone. Between chunks the host drops finished trials: once at most half of
 them still run, the next chunks run those only, gathered into a batch padded to a power of two and
-scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay. Episode ``i``'s return and length, test ``j`` (after training episode
-``(j + 1) * test_every``), the best test's params (paper Sec. V: catastrophic forgetting) and
-``episodes_to_optimal`` (the training-episode count at the first optimal test) are kept per trial.
+scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay (each
+smaller batch compiles its chunk once, counted in the run's seconds).
+
+Episode ``i``'s return and length, test ``j`` (after training episode ``(j + 1) * test_every``), the
+best test's params (paper Sec. V: catastrophic forgetting) and ``episodes_to_optimal`` (the
+training-episode count at the first optimal test) are kept per trial.
 """
 
 from __future__ import annotations
@@ -124,6 +127,8 @@ class Trainer:
       optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
       min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
         updates); defaults to min(optimal_steps, horizon).
+      drop_finished: between chunks, run only the trials still short of their episodes once at most half
+        are (``lanes_to_run``); False steps every trial to the end.
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
