@@ -54,7 +54,7 @@ def run_jaxusar(task: ua.Subtask, trials: int, steps: int, chunk_steps: int, see
     dqn = config.from_dict(DQNConfig, MATCHED)
     episodes = steps // task.optimal_steps + 1  # more than a trial can finish: recording never stops early
     train = TrainConfig(episodes=episodes, test_every=TEST_EVERY, chunk_steps=min(chunk_steps, steps))
-    learner = sp.make_learner(task.senv.obs_dim, dqn)
+    learner = sp.make_learner(task.senv, dqn)
     trainer = Trainer(task.senv, learner, train, learning_starts=dqn.learning_starts, train_every=dqn.train_every,
                       optimal_steps=task.optimal_steps, min_episode_steps=task.optimal_steps)
     if steps % trainer.chunk_steps:
