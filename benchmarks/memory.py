@@ -21,6 +21,7 @@ import types
 import jax
 import numpy as np
 
+from jaxusar.core import replay as rb
 from jaxusar.core.replay import Replay
 from jaxusar.experiments import reproduce, train
 
@@ -49,9 +50,7 @@ def parts(state) -> dict[str, int]:
 
 def row_bytes(state, dqn) -> tuple[int, int]:
     """(bytes of one replay row now, bytes it took in format 1, with obs and next_obs as uint8 features)."""
-    replay = replays(state.trials.learner)[0]
-    lead = replay.pos.ndim  # lane (and learner) axes before the capacity axis
-    now = sum(int(np.prod(x.shape[lead + 1:])) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(replay.rows))
+    now = rb.row_bytes(replays(state.trials.learner)[0])
     codes = 0 if dqn.codec is None else len(dqn.codec.sizes) * np.dtype(dqn.codec.dtype).itemsize
     return now, now + (0 if dqn.codec is None else 2 * (dqn.obs_dim - codes))
 

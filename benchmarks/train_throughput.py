@@ -22,9 +22,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from jaxusar import config
+from jaxusar import algos, config
 from jaxusar.core import replay as rb
-from jaxusar import algos
 from jaxusar.experiments.train import build, environment_info
 
 

@@ -13,8 +13,11 @@ observation is exact by construction.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 
@@ -64,8 +67,9 @@ class Replay:
 
 
 def row_bytes(buffer: Replay) -> int:
-    """Bytes one stored row takes."""
-    return sum(x.dtype.itemsize * x[0].size for x in jax.tree.leaves(buffer.rows))
+    """Bytes one stored row takes (``buffer`` may carry leading lane axes, or be ``jax.eval_shape`` shapes)."""
+    lead = len(buffer.pos.shape) + 1  # the lane axes, then the capacity axis
+    return sum(np.dtype(x.dtype).itemsize * math.prod(x.shape[lead:]) for x in jax.tree.leaves(buffer.rows))
 
 
 def init(example_row, capacity: int) -> Replay:
