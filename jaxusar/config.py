@@ -79,6 +79,9 @@ class DQNConfig:
     n_step: int = _field(1, _positive, "steps of the return before bootstrapping, >= 1 (cut at episode ends)")
     n_step_cut_exploring: bool = _field(False, doc="n-step returns also stop before an exploring action "
                                         "(Watkins's cut: they then estimate Q*, not the exploring policy's Q)")
+    n_step_cut_greedy: bool = _field(False, doc="n-step returns stop before a stored action that is not the "
+                                     "current target net's greedy one (Watkins's cut at update time: old "
+                                     "exploring data stop too)")
     reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning (Q is "
                                  "learned in scaled units; the greedy policy is unchanged)")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")
@@ -193,6 +196,9 @@ class ExperimentConfig:
             raise ConfigError(f"dqn.buffer_capacity={d.buffer_capacity} is smaller than dqn.batch_size={d.batch_size}")
         if d.eps_end > d.eps_start:
             raise ConfigError(f"dqn.eps_end={d.eps_end} is above dqn.eps_start={d.eps_start}")
+        if d.n_step_cut_exploring and d.n_step_cut_greedy:
+            raise ConfigError("dqn.n_step_cut_exploring and dqn.n_step_cut_greedy are both true: choose one cut "
+                              "(the acting params' greedy action, or the current target net's)")
         if d.lr_schedule != "constant" and d.lr_end > d.lr:
             raise ConfigError(f"dqn.lr_end={d.lr_end} is above dqn.lr={d.lr}: a decaying lr_schedule needs "
                               "lr_end in (0, lr]")

@@ -193,16 +193,15 @@ def test_n_step_returns_hand_computed():
 
 
 def test_n_step_returns_stop_before_an_exploring_action():
-    """With ``greedy`` flags, the return from row i never runs through a later row whose action explored
+    """With ``extend``, the return from row i never runs through a later row whose action explored
     (row i's own action may explore: it is the one being valued)."""
     g = 0.9
     buf = _rows([1.0, 2.0, 4.0, 8.0], [g] * 4, [False] * 4, [False] * 4)
     greedy = jnp.array([False, True, False, True] + [True] * 4)
-    buf = buf.replace(rows={**buf.rows, "greedy": greedy})
-    b = rb.sample_returns(buf, _at(buf, 0), 3)  # rows 0, 1; row 2 explored
+    b = rb.sample_returns(buf, _at(buf, 0), 3, lambda k: greedy[k])  # rows 0, 1; row 2 explored
     np.testing.assert_allclose([float(b["reward"][0]), float(b["discount"][0])], [1 + g * 2, g * g], rtol=1e-6)
     assert int(b["next_obs"][0]) == 2
-    b = rb.sample_returns(buf, _at(buf, 2), 3)  # row 2 explored itself: rows 2, 3
+    b = rb.sample_returns(buf, _at(buf, 2), 3, lambda k: greedy[k])  # row 2 explored itself: rows 2, 3
     np.testing.assert_allclose(float(b["reward"][0]), 4 + g * 8, rtol=1e-6)
 
 
@@ -219,6 +218,28 @@ def test_learners_flag_greedy_actions_for_n_step_returns():
     tr["action"] = jnp.stack([greedy[0], (greedy[1] + 1) % 4])
     st = learner.observe(st, tr)
     np.testing.assert_array_equal(st.replay.rows["greedy"][:, 0], [True, False])
+
+
+def test_n_step_returns_cut_where_the_current_target_net_would_act_otherwise():
+    """``n_step_cut_greedy``: the return stops before a stored action that is not the target net's argmax
+    now (whatever the acting params were); without the option it runs all n rows."""
+    g = 0.5
+    obs = jnp.eye(4, dtype=jnp.float32)
+    def run(cut, flip):  # rows 0-3; row ``flip``'s action is the non-greedy one
+        cfg = DQNConfig(hidden=(8,), batch_size=1, buffer_capacity=8, n_step=3, gamma=g, n_step_cut_greedy=cut)
+        dqn = ql.DQN(4, 2, cfg, lambda b, qt, qo: b["reward"])
+        row = lambda i, a: {"obs": obs[i], "action": jnp.int32(a), "reward": jnp.float32(2.0 ** i),
+                            "next_obs": obs[(i + 1) % 4], "terminal": jnp.bool_(False), "done": jnp.bool_(False)}
+        st = dqn.init(jax.random.PRNGKey(3), row(0, 0))
+        greedy = np.asarray(jnp.argmax(dqn.q_values(st.target_params, obs), -1))
+        for i in range(4):
+            st = dqn.add(st, row(i, greedy[i] if i != flip else 1 - greedy[i]))
+        b = dqn.sample(st, jnp.array([0.5 / 4]))  # row 0
+        return float(b["reward"][0]), float(b["discount"][0]), int(jnp.argmax(b["next_obs"][0]))
+    np.testing.assert_allclose(run(True, 2), (1 + g * 2, g * g, 2), rtol=1e-6)   # stops before row 2
+    np.testing.assert_allclose(run(True, 1), (1, g, 1), rtol=1e-6)               # one step: row 1 explored
+    np.testing.assert_allclose(run(True, 0), (1 + g * 2 + g * g * 4, g ** 3, 3), rtol=1e-6)  # row 0 is valued
+    np.testing.assert_allclose(run(False, 1), (1 + g * 2 + g * g * 4, g ** 3, 3), rtol=1e-6)
 
 
 def test_n_step_returns_follow_the_ring_and_stop_at_the_newest_row():

@@ -41,6 +41,8 @@ def test_train_iql_end_to_end(tmp_path, capsys):
     (["train", "iql", "--options", "2,4"], "--options"),
     (["train", "doc", "--options", "2,x"], "--options"),
     (["train", "iql", "--config", "/nonexistent.yaml"], "does not exist"),
+    (["train", "iql", "--set", "dqn.n_step_cut_exploring=true", "--set", "dqn.n_step_cut_greedy=true"],
+     "n_step_cut_greedy"),
 ])
 def test_train_bad_input_is_one_line_before_compiling(argv, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:

@@ -158,10 +158,13 @@ class DQN:
             row[k] = jnp.asarray(row[k]).astype(jnp.uint8) if self.codec is None else self.codec.encode(row[k])
         return row
 
+    def decode(self, stored: jax.Array) -> jax.Array:
+        """Stored observations -> the network's float32 input (``compact`` undone)."""
+        return stored.astype(jnp.float32) if self.codec is None else self.codec.decode(stored)
+
     def expand(self, batch: dict) -> dict:
-        """A sampled batch with its observations as the network's float32 input (``compact`` undone)."""
-        decode = (lambda x: x.astype(jnp.float32)) if self.codec is None else self.codec.decode
-        return {**batch, "obs": decode(batch["obs"]), "next_obs": decode(batch["next_obs"])}
+        """A sampled batch with its observations as the network's input."""
+        return {**batch, "obs": self.decode(batch["obs"]), "next_obs": self.decode(batch["next_obs"])}
 
     def add(self, state: DQNState, row: dict) -> DQNState:
         return state.replace(replay=rb.add(state.replay, self.compact(row)))
@@ -178,7 +181,16 @@ class DQN:
 
     def sample(self, state: DQNState, u_sample: jax.Array) -> dict:
         """A replay batch with its ``cfg.n_step`` returns, observations as the network's input."""
-        return self.expand(rb.sample_returns(state.replay, u_sample, self.cfg.n_step))
+        rows, cfg = state.replay.rows, self.cfg
+        extend = None
+        if cfg.n_step > 1 and cfg.n_step_cut_exploring:  # greedy under the params that acted
+            extend = lambda k: rows["greedy"][k]
+        elif cfg.n_step > 1 and cfg.n_step_cut_greedy:  # greedy under the current target net
+
+            def extend(k):
+                q = self.q_values(state.target_params, self.decode(rows["obs"][k]))
+                return jnp.argmax(q, axis=-1) == rows["action"][k].reshape(k.shape).astype(jnp.int32)
+        return self.expand(rb.sample_returns(state.replay, u_sample, cfg.n_step, extend))
 
     def update(self, state: DQNState, u_sample: jax.Array, target_fn: TargetFn | None = None) -> DQNState:
         """One gradient step on a batch drawn with the uniforms u_sample float[batch_size].

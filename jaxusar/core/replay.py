@@ -99,7 +99,7 @@ def sample(buffer: Replay, u: jax.Array):
     return jax.tree.map(lambda store: store[idx], buffer.rows)
 
 
-def sample_returns(buffer: Replay, u: jax.Array, n: int):
+def sample_returns(buffer: Replay, u: jax.Array, n: int, extend=None):
     """Rows drawn as ``sample``, each with its n-step return (Sutton and Barto 2018, Sec. 7.1).
 
     The rows of one learner are written in time order, so row ``i``'s successors are ``i + 1, ...``.
@@ -115,10 +115,12 @@ def sample_returns(buffer: Replay, u: jax.Array, n: int):
     A time-limit cut (done, not terminal) keeps its bootstrap from the true next observation stored
     in that row. With n = 1 this is row i itself with discount gamma * (1 - terminal).
 
-    Rows may say whether their action was the greedy one (``greedy``); the return then also stops
-    before a row whose action explored (Watkins's Q(lambda) cut, Sutton and Barto 2018, Sec. 12.10), so
-    it estimates the greedy policy's value, Q*, and not the exploring policy's (``dqn.n_step_cut_exploring``;
-    measured in benchmarks/README.md).
+    ``extend(k int32[B]) -> bool[B]``, optional: whether the return may go on through row ``k`` (a
+    successor, never the row itself). The DQN core passes "row k's action is the greedy one", the
+    greedy policy of the acting params (``dqn.n_step_cut_exploring``) or of the current target net
+    (``dqn.n_step_cut_greedy``): Watkins's Q(lambda) cut (Sutton and Barto 2018, Sec. 12.10), so the
+    return estimates the greedy policy's value, Q*, and not the exploring policy's (measured in
+    benchmarks/README.md).
     """
     idx = _indices(buffer, u)
     rows, cap = buffer.rows, buffer.capacity
@@ -130,8 +132,8 @@ def sample_returns(buffer: Replay, u: jax.Array, n: int):
     for j in range(n):
         k = (idx + j) % cap
         take = alive & (j <= newer)
-        if j > 0 and "greedy" in rows:
-            take = take & rows["greedy"][k]
+        if j > 0 and extend is not None:
+            take = take & extend(k)
         ret = jnp.where(take, ret + discount * rows["reward"][k], ret)
         discount = jnp.where(take, discount * rows["gamma"][k] * (1.0 - rows["terminal"][k].astype(jnp.float32)),
                              discount)
