@@ -17,6 +17,9 @@ from pathlib import Path
 import numpy as np
 
 
+DEMO_MAX_STATES = 50_000_000  # joint states bound above which `jaxusar demo` skips the exact search
+
+
 class UsageError(Exception):
     """Bad input from the command line: reported in one line, exit status 2, no traceback."""
 
@@ -61,8 +64,8 @@ def add_demo(subparsers) -> None:
 
 def demo(args: argparse.Namespace) -> int:
     from jaxusar.envs import ACTION_NAMES, DIRECTION_NAMES
-    from jaxusar.envs.render import render_ascii, render_state, rollout_states, save_episode_strip
-    from jaxusar.planning import agent_distances, optimal_team_plan, optimal_team_steps
+    from jaxusar.envs.render import render_ascii, rollout_states, save_episode_strip, save_map
+    from jaxusar.planning import agent_distances, joint_states_bound, optimal_team_plan, optimal_team_steps
 
     env = make_env(args, horizon=args.horizon)
     out = output_dir(args.out)  # before the work, so a bad --out fails fast
@@ -81,8 +84,14 @@ def demo(args: argparse.Namespace) -> int:
         print(f"  {r}  {name:<14} {kind:<5} {cells:3d} cells   victims {str(victims):<8} agents at start {agents}")
     print("  edges: " + (", ".join(f"{a} -- {b}" for a, b in graph.edges()) or "(none)"))
 
-    steps = optimal_team_steps(env)
-    print(f"\nOptimal team steps from the reset state (exact joint BFS): {steps}")
+    bound = joint_states_bound(env)
+    if bound > DEMO_MAX_STATES:
+        steps = None
+        print(f"\nOptimal team steps: not searched; the exact joint BFS could visit up to {bound:.2g} states on "
+              f"this map ({env.n_agents} medics, {env.n_victims} victims; the demo searches up to {DEMO_MAX_STATES:.0e})")
+    else:
+        steps = optimal_team_steps(env)
+        print(f"\nOptimal team steps from the reset state (exact joint BFS): {steps}")
     print("Per-agent shortest steps, each agent alone on the map (to enter a region / to triage a victim):")
     for i, (r, c) in enumerate(starts):
         dist = agent_distances(env, i)
@@ -91,6 +100,10 @@ def demo(args: argparse.Namespace) -> int:
         print(f"  agent {i} at ({r}, {c}) facing {DIRECTION_NAMES[env.start_dir]}: to_region {regions};"
               f" to_triage {triage}")
 
+    if steps is None:
+        map_png = save_map(env, out / "map.png")
+        print(f"\nWrote {map_png}")
+        return 0
     plan = optimal_team_plan(env)
     states, rewards = rollout_states(env, plan)
     played = len(rewards)
@@ -106,9 +119,7 @@ def demo(args: argparse.Namespace) -> int:
     outcome = "all victims triaged" if all_triaged else f"the horizon of {env.horizon} steps ended it first"
     print(f"Return {rewards.sum():g} in {played} steps ({outcome}).")
 
-    map_png = out / "map.png"
-    ax = render_state(env, states[0], title=f"{env.layout.name}: reset state", legend=True)
-    ax.figure.savefig(map_png, dpi=120, bbox_inches="tight")
+    map_png = save_map(env, out / "map.png")
     strip = save_episode_strip(
         env, states, out / "episode.png", rewards=rewards,
         suptitle=f"{env.layout.name}: an optimal joint plan, {played} of {steps} steps played, return {rewards.sum():g}")
@@ -277,8 +288,80 @@ def reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- maps ---------------------------------------------------------------------------------------
+def add_maps(subparsers) -> None:
+    p = subparsers.add_parser("maps", help="generate rooms-and-corridors maps; segment a layout into regions",
+                              description="Map tools. A written map runs with --set env.map=DIR/NAME.txt.")
+    sub = p.add_subparsers(dest="maps_command", required=True, metavar="ACTION")
+    g = sub.add_parser("generate", help="a seeded rooms-and-corridors map: NAME.txt, NAME.regions.txt, NAME.png",
+                       description="Write a rooms-and-corridors map (1-wide corridors, one doorway per room), "
+                                   "its region grid (segmented from the layout) and a picture. The same "
+                                   "arguments give the same map; every victim is checked reachable.")
+    for name, default, text in (("height", 20, "rows"), ("width", 30, "columns"), ("rooms", 8, "rooms"),
+                                ("medics", 4, "medics (agents), started in corridors"),
+                                ("victims", 6, "victims, in distinct rooms while rooms last"), ("seed", 0, "seed")):
+        g.add_argument(f"--{name}", type=int, default=default, help=f"{text} (default: {default})")
+    g.add_argument("--name", default=None, help="file name stem (default: rooms<R>_<H>x<W>_s<SEED>)")
+    g.add_argument("--out", type=Path, default=Path("runs/maps"), metavar="DIR", help="folder (default: runs/maps)")
+    g.set_defaults(run=maps_generate)
+    s = sub.add_parser("segment", help="write the region grid segmented from a layout beside it (or to --out)",
+                       description="Segment a .txt layout into rooms and halls (doorways split regions) and write "
+                                   "NAME.regions.txt beside it, unless one exists (--force replaces it).")
+    s.add_argument("layout", type=Path, help="a .txt layout")
+    s.add_argument("--force", action="store_true", help="replace an existing region grid")
+    s.set_defaults(run=maps_segment)
+
+
+def maps_generate(args: argparse.Namespace) -> int:
+    from jaxusar.envs import USAREnv
+    from jaxusar.envs.mapgen import GeneratorError, generated_layout
+    from jaxusar.envs.render import save_map
+
+    name = args.name or f"rooms{args.rooms}_{args.height}x{args.width}_s{args.seed}"
+    try:
+        layout, text, regions = generated_layout(args.height, args.width, args.rooms, args.medics, args.victims,
+                                                 args.seed, name=name)
+    except GeneratorError as err:
+        raise UsageError(str(err)) from None
+    out = output_dir(args.out)
+    (out / f"{name}.txt").write_text(text)
+    (out / f"{name}.regions.txt").write_text(regions)
+    png = save_map(USAREnv(layout), out / f"{name}.png")
+    print(layout.to_ascii())
+    print(f"{layout.shape[0]}x{layout.shape[1]}, {len(layout.region_names)} regions "
+          f"({sum(k == 'room' for k in layout.region_kinds)} rooms), {len(layout.agent_start)} medics, "
+          f"{len(layout.victim_pos)} victims")
+    print(f"Wrote {out / f'{name}.txt'}, {out / f'{name}.regions.txt'} and {png}; "
+          f"train on it with --set env.map={out / f'{name}.txt'}")
+    return 0
+
+
+def maps_segment(args: argparse.Namespace) -> int:
+    from jaxusar.envs import LayoutError, parse_layout
+    from jaxusar.envs.layout import companion
+    from jaxusar.envs.mapgen import segmented_regions_text
+
+    if args.layout.suffix != ".txt" or not args.layout.is_file():
+        raise UsageError(f"{str(args.layout)!r} is not a .txt layout file")
+    target = companion(args.layout, ".regions.txt")
+    if target.exists() and not args.force:
+        raise UsageError(f"{target} exists (a hand-made region grid wins); --force replaces it")
+    text = args.layout.read_text()
+    try:
+        regions = segmented_regions_text(text, args.layout.stem)
+        layout = parse_layout(text, regions, name=args.layout.stem)
+    except LayoutError as err:
+        raise UsageError(str(err)) from None
+    target.write_text(regions)
+    print(regions.split("---\n", 1)[1], end="")
+    print(f"{len(layout.region_names)} regions: " + ", ".join(f"{n} ({k})" for n, k in
+                                                              zip(layout.region_names, layout.region_kinds)))
+    print(f"Wrote {target}")
+    return 0
+
+
 # -- entry point ----------------------------------------------------------------------------------
-COMMANDS = (add_demo, add_train, add_reproduce)
+COMMANDS = (add_demo, add_train, add_reproduce, add_maps)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -150,6 +150,11 @@ def _all_triaged(pos, dirs, triaged) -> np.ndarray:
     return triaged.all(-1)
 
 
+def joint_states_bound(env: USAREnv) -> int:
+    """An upper bound on the joint states the exact search may visit: (open cells x 4)^agents x 2^victims."""
+    return (int((~env.layout.blocked).sum()) * 4) ** env.n_agents * 2 ** env.n_victims
+
+
 def optimal_team_steps(env: USAREnv, max_states: int = 20_000_000) -> int:
     """Fewest joint primitive steps for the team to triage every victim from the reset state.
 

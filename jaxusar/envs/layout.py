@@ -6,7 +6,10 @@ A map is two text files in ``jaxusar/envs/layouts/``:
                       ``A`` agent start. Agents and victims are numbered in row-major reading order.
 ``NAME.regions.txt``  the region grid (the paper's graph view, Fig. 3): one letter per cell, ``#``
                       exactly on the wall and obstacle cells; its header names each letter
-                      (``T top_room room``; the kind is ``room`` or ``hall``).
+                      (``T top_room room``; the kind is ``room`` or ``hall``). A map without one is
+                      segmented from its layout (``mapgen.segment``: rooms are the areas wide enough
+                      for 3x3 open cells, corridors and doorways are hall), and the grid is written
+                      beside it to inspect and edit.
 ``NAME.settings.yaml`` optional: config settings that belong to this map (they name its tasks), merged
                       over an algorithm's defaults in every run on it (``jaxusar.config.load``).
 
@@ -17,6 +20,7 @@ are comments. A file without ``---`` is all grid.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections import deque
 from pathlib import Path
 
@@ -216,9 +220,22 @@ def load_layout(name: str) -> Layout:
     """Load a shipped layout by name (``two_rooms``) or from a path to a ``.txt`` layout file."""
     path = layout_path(name)
     regions_path = companion(path, ".regions.txt")
-    if not regions_path.exists():
-        raise LayoutError(f"map {name!r}: no region grid beside the layout (expected {regions_path})")
-    return parse_layout(path.read_text(), regions_path.read_text(), name=path.stem)
+    text = path.read_text()
+    if regions_path.exists():  # a hand-made (or edited) region grid wins
+        return parse_layout(text, regions_path.read_text(), name=path.stem)
+    from jaxusar.envs.mapgen import segmented_regions_text
+
+    regions = segmented_regions_text(text, path.stem)
+    layout = parse_layout(text, regions, name=path.stem)  # a bad layout fails here, before anything is written
+    try:
+        regions_path.write_text(regions)
+        warnings.warn(f"map {name!r} had no region grid: segmented it from the layout into "
+                      f"{', '.join(f'{n} ({k})' for n, k in zip(layout.region_names, layout.region_kinds))} "
+                      f"and wrote {regions_path} (edit it to change the regions)", stacklevel=2)
+    except OSError as err:
+        warnings.warn(f"map {name!r} had no region grid: segmented it from the layout, but could not write "
+                      f"{regions_path} ({err.strerror or err})", stacklevel=2)
+    return layout
 
 
 def settings_path(name: str) -> Path | None:

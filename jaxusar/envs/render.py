@@ -21,6 +21,9 @@ FLOOR, WALL, OBSTACLE = "#c0c0c0", "#000000", "#2d2d2d"
 VICTIM, TRIAGED_VICTIM, MEDIC = "#3f9b35", "#a6d99c", "#2626ff"
 CHECK = "#1d5c17"  # the check mark on a triaged victim
 GRID = "#d9d9d9"
+# region tints of a map picture: warm and violet pastels, none near the victims' green or the medics' blue
+ROOM_TINTS = ("#f4a582", "#d6a5c9", "#f7d08a", "#c7b8e8", "#f2b6b6", "#e8c39e", "#e7a1b0", "#d9c27e")
+HALL_TINT = "#fff7c2"
 
 
 def _numpy_state(state: EnvState) -> EnvState:
@@ -248,3 +251,27 @@ def rollout_states(env: USAREnv, actions, key: jax.Array | None = None) -> tuple
         if done:
             break
     return states, np.asarray(rewards, np.float32)
+
+
+def save_map(env: USAREnv, path, title: str | None = None) -> Path:
+    """The reset state with every region tinted and named (the graph view over the map); returns ``path``."""
+    from matplotlib.colors import to_rgba
+
+    _, state = env.reset(None)
+    ax = render_state(env, state, title=title or f"{env.layout.name}: reset state and regions", legend=True)
+    region = env.graph.cell_region
+    tint = np.zeros(region.shape + (4,))
+    rooms = 0
+    for r, (name, kind) in enumerate(zip(env.graph.names, env.graph.kinds)):
+        cells = region == r
+        color = HALL_TINT if kind == "hall" else ROOM_TINTS[rooms % len(ROOM_TINTS)]
+        rooms += kind != "hall"
+        tint[cells] = to_rgba(color, 0.6)
+        rows, cols = np.nonzero(cells)
+        k = np.argmin((rows - rows.mean()) ** 2 + (cols - cols.mean()) ** 2)  # a cell of the region near its middle
+        ax.text(cols[k], rows[k], name, ha="center", va="center", fontsize=6, zorder=5,
+                bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.75))
+    ax.imshow(tint, interpolation="nearest", origin="upper", zorder=1)
+    path = Path(path)
+    ax.figure.savefig(path, dpi=120, bbox_inches="tight")
+    return path

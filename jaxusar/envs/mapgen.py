@@ -1,0 +1,218 @@
+"""Maps without hand work: region grids segmented from a layout, and a seeded rooms-and-corridors generator.
+
+``segment(blocked)``: rooms are the open areas wide enough to hold a 3x3 block of open cells; what is
+left (corridors, and the doorways in room walls) is hall. Doorways thus split regions: a 1-wide gap in
+a wall belongs to the corridor it opens onto, and the room behind it starts at its first wide cell.
+Small thin pockets (an alcove of a room, a doorway directly between two rooms) join a room they touch.
+A hand-made ``NAME.regions.txt`` always wins; ``layout.load_layout`` segments only a map without one,
+and writes the result beside it for a person to inspect and edit.
+
+``generate(height, width, rooms, medics, victims, seed)``: rows of rooms along 1-wide horizontal
+corridors (a corridor between two rows of rooms, each room with one doorway onto it), joined by a
+vertical corridor down the left edge. Medics start in corridors, victims lie in distinct rooms while
+rooms last. Pure numpy: the same arguments give the same map on every machine, and the map is checked
+solvable (every victim reachable by some medic) by the same parser that loads shipped maps.
+"""
+
+from __future__ import annotations
+
+import string
+
+import numpy as np
+
+from jaxusar.envs.layout import Layout, LayoutError, parse_layout
+
+LETTERS = string.ascii_uppercase + string.ascii_lowercase + string.digits
+WIDE = 3         # a room holds a WIDE x WIDE block of open cells; a narrower area is hall
+POCKET = 4       # a thin area of at most this many cells touching a room joins it
+
+
+def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """4-connected components of ``mask``: (labels int32[H, W], -1 outside; count), in row-major order."""
+    h, w = mask.shape
+    labels = np.full((h, w), -1, np.int32)
+    n = 0
+    for r0, c0 in zip(*np.nonzero(mask)):
+        if labels[r0, c0] >= 0:
+            continue
+        labels[r0, c0] = n
+        stack = [(r0, c0)]
+        while stack:
+            r, c = stack.pop()
+            for nr, nc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if 0 <= nr < h and 0 <= nc < w and mask[nr, nc] and labels[nr, nc] < 0:
+                    labels[nr, nc] = n
+                    stack.append((nr, nc))
+        n += 1
+    return labels, n
+
+
+def _wide(open_: np.ndarray) -> np.ndarray:
+    """bool[H, W]: open cells inside some WIDE x WIDE block of open cells (a morphological opening)."""
+    h, w = open_.shape
+    fits = np.ones((max(h - WIDE + 1, 0), max(w - WIDE + 1, 0)), bool)
+    for dr in range(WIDE):
+        for dc in range(WIDE):
+            fits &= open_[dr:dr + fits.shape[0], dc:dc + fits.shape[1]]
+    wide = np.zeros_like(open_)
+    for dr in range(WIDE):
+        for dc in range(WIDE):
+            wide[dr:dr + fits.shape[0], dc:dc + fits.shape[1]] |= fits
+    return wide
+
+
+def _touching(labels: np.ndarray, mask: np.ndarray) -> set[int]:
+    """Labels of the cells 4-adjacent to ``mask``."""
+    near = np.zeros_like(mask)
+    near[1:] |= mask[:-1]
+    near[:-1] |= mask[1:]
+    near[:, 1:] |= mask[:, :-1]
+    near[:, :-1] |= mask[:, 1:]
+    return set(int(x) for x in np.unique(labels[near & ~mask]) if x >= 0)
+
+
+def segment(blocked: np.ndarray) -> tuple[np.ndarray, tuple[str, ...], tuple[str, ...]]:
+    """Rooms and halls of a map from its blocked cells alone.
+
+    Returns (region int32[H, W] with -1 on blocked cells, names, kinds), regions numbered rooms first
+    in row-major order of their first cell (``room_0``, ``room_1``, ..., then ``hall_0``, ...).
+    """
+    open_ = ~np.asarray(blocked, bool)
+    rooms, n_rooms = _components(_wide(open_))
+    thin, n_thin = _components(open_ & (rooms < 0))
+    region = rooms.copy()
+    halls = []
+    for t in range(n_thin):
+        cells = thin == t
+        near = sorted(_touching(rooms, cells))
+        if near and cells.sum() <= POCKET and (len(near) == 1 or cells.sum() <= 2):
+            region[cells] = near[0]  # an alcove, or a doorway straight from one room into another
+        else:
+            halls.append(cells)
+    for k, cells in enumerate(halls):
+        region[cells] = n_rooms + k
+    names = tuple(f"room_{i}" for i in range(n_rooms)) + tuple(f"hall_{k}" for k in range(len(halls)))
+    if len(names) > len(LETTERS):
+        raise LayoutError(f"segmentation found {len(names)} regions; a region file holds at most {len(LETTERS)}")
+    return region, names, ("room",) * n_rooms + ("hall",) * len(halls)
+
+
+def regions_text(region: np.ndarray, names, kinds, comment: str = "") -> str:
+    """A region grid file (``NAME.regions.txt``) for ``region``: legend lines, ``---``, one letter per cell."""
+    head = [f"; {line}" for line in comment.splitlines()] if comment else []
+    legend = [f"{LETTERS[i]} {name} {kind}" for i, (name, kind) in enumerate(zip(names, kinds))]
+    grid = ["".join("#" if x < 0 else LETTERS[x] for x in row) for row in region]
+    return "\n".join(head + legend + ["---"] + grid) + "\n"
+
+
+# -- the generator -----------------------------------------------------------------------------------
+class GeneratorError(ValueError):
+    """Generator arguments that cannot make a map (too small, too many rooms, ...)."""
+
+
+def _split(total: int, parts: int, least: int, rng: np.random.Generator) -> list[int]:
+    """``parts`` sizes >= ``least`` summing to ``total``, the slack spread at random."""
+    sizes = np.full(parts, least)
+    for i in rng.integers(0, parts, total - least * parts):
+        sizes[i] += 1
+    return sizes.tolist()
+
+
+def _overhead(n_rows: int) -> int:
+    """Rows of wall and corridor around ``n_rows`` room rows: an even row is followed by a wall (its
+    doorways) and a corridor, and after the first is preceded by a wall; an odd row sits behind a wall
+    (its doorways) below the corridor before it."""
+    return sum(2 + (i > 0) if i % 2 == 0 else 1 for i in range(n_rows))
+
+
+def _per_row(width: int) -> int:
+    return (width - 1) // (WIDE + 1)  # rooms in cols 2..width-1 with a wall between two; col 0 corridor
+
+
+def room_capacity(height: int, width: int) -> int:
+    """The most rooms ``generate`` fits in a height x width map (rooms at least WIDE x WIDE)."""
+    rows = 0
+    while _overhead(rows + 1) + WIDE * (rows + 1) <= height:
+        rows += 1
+    return _per_row(width) * rows
+
+
+def generate(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0) -> str:
+    """A rooms-and-corridors layout (the ``.txt`` text, header included), the same for the same arguments.
+
+    Not checked here; ``generated_layout`` parses it (every victim reachable) and segments its regions."""
+    for name, value, least in (("height", height, 2 * WIDE), ("width", width, WIDE + 2), ("rooms", rooms, 1),
+                               ("medics", medics, 1), ("victims", victims, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise GeneratorError(f"{name}={value!r}: must be an integer >= {least}")
+    capacity = room_capacity(height, width)
+    if rooms > capacity:
+        raise GeneratorError(f"{rooms} rooms do not fit in a {height}x{width} map (at most {capacity} rooms of "
+                             f"{WIDE}x{WIDE} cells or more); ask for fewer rooms or a bigger map")
+    rng = np.random.default_rng(seed)
+    fits = [r for r in range(1, rooms + 1) if _overhead(r) + WIDE * r <= height and r * _per_row(width) >= rooms]
+    aspect = lambda r: abs(np.log((height - _overhead(r)) / r) - np.log((width - 2) / -(-rooms // r)))
+    n_rows = min(fits, key=aspect)  # rooms as near square as the map allows
+    counts = [rooms // n_rows + (i < rooms % n_rows) for i in range(n_rows)]
+    heights = _split(height - _overhead(n_rows), n_rows, WIDE, rng)
+    grid = np.full((height, width), "#", dtype="<U1")
+    grid[:, 0] = "."  # the vertical corridor down the left edge
+    corridors, room_cells, inside_door = [], [], set()
+    r = 0
+    for i in range(n_rows):
+        if i % 2 == 0:
+            r += i > 0  # the wall after the previous pair of rows
+            top = r
+            door_row, r = top + heights[i], top + heights[i] + 2
+            corridors.append(door_row + 1)
+            grid[door_row + 1, :] = "."
+        else:
+            door_row = r
+            top = r = r + 1
+            r += heights[i]
+        widths = _split(width - 2 - (counts[i] - 1), counts[i], WIDE, rng)
+        c = 2
+        for wd in widths:
+            grid[top:top + heights[i], c:c + wd] = "."
+            door_col = int(rng.integers(c, c + wd))
+            grid[door_row, door_col] = "."
+            inside_door.add((door_row - 1 if i % 2 == 0 else door_row + 1, door_col))
+            room_cells.append([(rr, cc) for rr in range(top, top + heights[i]) for cc in range(c, c + wd)])
+            c += wd + 1
+    grid[corridors[-1] + 1:, 0] = "#"  # the vertical corridor ends at the last corridor
+    hall = [(rr, 0) for rr in range(corridors[-1] + 1)] + [(cr, cc) for cr in corridors for cc in range(1, width)]
+    if medics > len(hall):
+        raise GeneratorError(f"{medics} medics do not fit in the {len(hall)} corridor cells of this map")
+    for k in sorted(rng.choice(len(hall), medics, replace=False)):
+        grid[hall[k]] = "A"
+    order = rng.permutation(len(room_cells))
+    for j in range(victims):
+        free = [cell for cell in room_cells[order[j % len(room_cells)]] if grid[cell] == "." and cell not in inside_door]
+        if not free:
+            raise GeneratorError(f"{victims} victims do not fit in the rooms of this map")
+        grid[free[int(rng.integers(len(free)))]] = "V"
+    header = (f"; generated by jaxusar.envs.mapgen.generate(height={height}, width={width}, rooms={rooms}, "
+              f"medics={medics}, victims={victims}, seed={seed})\n---\n")
+    return header + "\n".join("".join(row) for row in grid) + "\n"
+
+
+def generated_layout(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0,
+                     name: str = "generated") -> tuple[Layout, str, str]:
+    """``generate`` parsed and checked: (Layout, layout text, region grid text)."""
+    text = generate(height, width, rooms, medics, victims, seed)
+    regions = segmented_regions_text(text, name)
+    try:
+        return parse_layout(text, regions, name=name), text, regions
+    except LayoutError as err:  # e.g. victims sharing a small room wall one another in
+        raise GeneratorError(f"seed {seed} made an unsolvable map ({err}); try another seed or fewer victims") from None
+
+
+def segmented_regions_text(layout_text: str, name: str = "<string>") -> str:
+    """The region grid file ``segment`` makes for a layout's text."""
+    from jaxusar.envs.layout import _split_header
+
+    _, rows = _split_header(layout_text, f"layout {name!r}")
+    chars = np.array([list(row) for row in rows])
+    region, names, kinds = segment((chars == "#") | (chars == "X"))
+    return regions_text(region, names, kinds, f"region grid of {name!r} segmented from its layout "
+                        "(jaxusar.envs.mapgen.segment); edit freely: a region file beside a layout wins")

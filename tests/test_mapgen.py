@@ -1,0 +1,160 @@
+"""Maps without hand work: segmentation into regions, the seeded generator, ``jaxusar maps``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxusar import envs
+from jaxusar.cli import main
+from jaxusar.envs import LayoutError, mapgen
+from jaxusar.envs.layout import parse_layout
+
+ROOMS_AND_HALL = """\
+V...#.....#....
+....#.....#...V
+....#..V..#....
+....#.....#....
+##.####.####.##
+...............
+A.............A"""
+
+
+def blocked(grid: str) -> np.ndarray:
+    chars = np.array([list(row) for row in grid.splitlines()])
+    return (chars == "#") | (chars == "X")
+
+
+def test_doorways_split_rooms_from_the_hall():
+    region, names, kinds = mapgen.segment(blocked(ROOMS_AND_HALL))
+    assert names == ("room_0", "room_1", "room_2", "hall_0") and kinds == ("room",) * 3 + ("hall",)
+    np.testing.assert_array_equal(region[0], [0, 0, 0, 0, -1, 1, 1, 1, 1, 1, -1, 2, 2, 2, 2])
+    assert region[4, 2] == region[4, 7] == region[4, 12] == 3  # the doorways belong to the hall
+    assert (region[5:] == 3).all() and (region[:4, :4] == 0).all()
+
+
+def test_pockets_join_their_room_and_a_door_between_two_rooms_joins_one():
+    grid = """\
+.....#....
+.....#....
+..........
+.....#....
+####.#....
+....#.....
+....#....."""
+    region, names, kinds = mapgen.segment(blocked(grid))
+    # rooms: left-top block (rows 0-3, cols 0-4), the right block (cols 6-9), the bottom-left block is too
+    # narrow below row 4 (4 wide, 2 tall): a thin area that touches two rooms, so it stays a hall
+    assert kinds.count("room") == 2
+    assert region[2, 5] in (region[2, 4], region[2, 6])  # the 1-cell doorway between two rooms joined one
+    assert kinds[region[5, 0]] == "hall"
+
+
+def test_a_map_without_region_file_is_segmented_and_written(tmp_path):
+    (tmp_path / "mine.txt").write_text(ROOMS_AND_HALL)
+    with pytest.warns(UserWarning, match="segmented it from the layout.*room_0 \\(room\\).*wrote"):
+        layout = envs.load_layout(str(tmp_path / "mine.txt"))
+    written = (tmp_path / "mine.regions.txt").read_text()
+    assert layout.region_names == ("room_0", "room_1", "room_2", "hall_0")
+    # a person edits it (the hall split in two): the file now wins over segmentation
+    edited = written.replace("D hall_0 hall", "D hall_0 hall\nE east_hall hall")
+    lines = edited.split("---\n")
+    rows = lines[1].splitlines()
+    rows[5], rows[6] = rows[5][:8] + "E" * 7, rows[6][:8] + "E" * 7
+    (tmp_path / "mine.regions.txt").write_text(lines[0] + "---\n" + "\n".join(rows) + "\n")
+    again = envs.load_layout(str(tmp_path / "mine.txt"))
+    assert again.region_names[-1] == "east_hall" and again.region[6, 14] == 4
+
+
+def test_an_unwritable_region_file_is_a_warning_and_the_map_still_loads(tmp_path, monkeypatch):
+    (tmp_path / "mine.txt").write_text(ROOMS_AND_HALL)
+    def refuse(self, *a, **k):
+        raise PermissionError(13, "Permission denied")
+    monkeypatch.setattr("pathlib.Path.write_text", refuse)
+    with pytest.warns(UserWarning, match="could not write .*mine.regions.txt.*Permission denied"):
+        layout = envs.load_layout(str(tmp_path / "mine.txt"))
+    assert len(layout.region_names) == 4 and not (tmp_path / "mine.regions.txt").exists()
+
+
+def test_a_layout_with_an_unreachable_victim_fails_before_anything_is_written(tmp_path):
+    (tmp_path / "walled.txt").write_text("A..#V\n...#.")
+    with pytest.raises(LayoutError, match="victim 0 at \\(0, 4\\) cannot be reached"):
+        envs.load_layout(str(tmp_path / "walled.txt"))
+    assert not (tmp_path / "walled.regions.txt").exists()
+
+
+@pytest.mark.parametrize("name, medics, victims, rooms", [
+    ("three_rooms", 2, 3, 3), ("four_rooms", 3, 4, 4), ("office", 4, 6, 9)])
+def test_shipped_maps(name, medics, victims, rooms):
+    env = envs.make(name)
+    assert env.n_agents == medics and env.n_victims == victims
+    assert env.graph.kinds.count("room") == rooms and "hall" in env.graph.kinds
+    # the shipped region grids are what segmentation gives (none was edited by hand)
+    region, names, kinds = mapgen.segment(env.layout.blocked)
+    np.testing.assert_array_equal(region, env.layout.region)
+    assert (names, kinds) == (env.layout.region_names, env.layout.region_kinds)
+    if name == "office":
+        assert env.layout.shape[0] >= 20 and env.layout.shape[1] >= 30
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+@pytest.mark.parametrize("height, width, rooms, medics, victims", [(40, 40, 12, 4, 8), (12, 20, 4, 2, 5),
+                                                                   (22, 32, 9, 4, 6)])
+def test_generated_maps_are_what_was_asked_and_reproducible(seed, height, width, rooms, medics, victims):
+    layout, text, regions = mapgen.generated_layout(height, width, rooms, medics, victims, seed)
+    assert layout.shape == (height, width)
+    assert len(layout.agent_start) == medics and len(layout.victim_pos) == victims
+    assert layout.region_kinds.count("room") == rooms and layout.region_kinds.count("hall") == 1
+    graph = envs.make(layout).graph
+    hall = graph.kinds.index("hall")
+    assert all(graph.adjacency[r, hall] for r in graph.rooms)  # every room opens on the corridor
+    assert all(graph.kinds[graph.cell_region[r, c]] == "hall" for r, c in layout.agent_start)
+    rooms_with = {int(graph.victim_region[v]) for v in range(victims)}
+    assert len(rooms_with) == min(victims, rooms)  # victims spread over distinct rooms while rooms last
+    assert mapgen.generated_layout(height, width, rooms, medics, victims, seed)[1] == text
+    assert mapgen.generate(height, width, rooms, medics, victims, seed + 100) != text
+    parse_layout(text, regions)  # the written pair loads
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(height=20, width=30, rooms=29, medics=2, victims=2), "29 rooms do not fit in a 20x30 map \\(at most 28"),
+    (dict(height=20, width=30, rooms=4, medics=0, victims=2), "medics=0: must be an integer >= 1"),
+    (dict(height=4, width=30, rooms=1, medics=1, victims=1), "height=4"),
+    (dict(height=20, width=30, rooms=4, medics=2, victims=2, seed=-1), "seed=-1"),
+])
+def test_generator_bad_input(kwargs, message):
+    with pytest.raises(mapgen.GeneratorError, match=message):
+        mapgen.generate(**kwargs)
+
+
+def test_maps_generate_cli(tmp_path, capsys):
+    out = tmp_path / "maps"
+    assert main(["maps", "generate", "--height", "20", "--width", "30", "--rooms", "8", "--medics", "4",
+                 "--victims", "6", "--seed", "3", "--out", str(out)]) == 0
+    stem = "rooms8_20x30_s3"
+    assert (out / f"{stem}.png").read_bytes()[:4] == b"\x89PNG"
+    env = envs.make(str(out / f"{stem}.txt"))  # loads with its written region grid
+    assert env.n_agents == 4 and env.graph.kinds.count("room") == 8
+    assert "9 regions (8 rooms), 4 medics, 6 victims" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["maps", "generate", "--rooms", "100", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "100 rooms do not fit" in err
+
+
+def test_maps_segment_cli(tmp_path, capsys):
+    (tmp_path / "mine.txt").write_text(ROOMS_AND_HALL)
+    assert main(["maps", "segment", str(tmp_path / "mine.txt")]) == 0
+    assert "4 regions: room_0 (room), room_1 (room), room_2 (room), hall_0 (hall)" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:  # never overwrites a (maybe hand-made) region grid
+        main(["maps", "segment", str(tmp_path / "mine.txt")])
+    assert e.value.code == 2 and "--force" in capsys.readouterr().err
+    assert main(["maps", "segment", str(tmp_path / "mine.txt"), "--force"]) == 0
+
+
+def test_demo_on_a_map_too_big_for_the_exact_search(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--map", "four_rooms", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "Optimal team steps: not searched; the exact joint BFS could visit up to" in stdout
+    assert "room_0 -- hall_0" in stdout and (out / "map.png").read_bytes()[:4] == b"\x89PNG"
