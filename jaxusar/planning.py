@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxusar.envs.usar import N_ACTIONS, EnvState, USAREnv
+from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, EnvState, USAREnv
 
 
 class Unreachable(RuntimeError):
@@ -244,3 +244,79 @@ def steps_to_goal(solid: np.ndarray, victim_at: np.ndarray, goal_region_mask: np
         dist = new
     dist[solid] = -1
     return np.where(dist >= inf, -1, dist).astype(np.int32)
+
+
+# -- a lower bound on the team optimum at any size ------------------------------------------------
+def _pose_index(width: int, r, c, d):
+    return (np.asarray(r) * width + np.asarray(c)) * 4 + np.asarray(d)
+
+
+def pose_distances(env: USAREnv, targets: np.ndarray) -> np.ndarray:
+    """int64[T, H*W*4]: fewest moves (FORWARD and turns) for one agent alone to stand in pose ``targets[t]``
+    (flat (row * W + col) * 4 + dir) from every pose; a large number where it cannot (victims block)."""
+    nxt = np.asarray(_single_agent_successors(jnp.asarray(env._solid), jnp.asarray(env._victim_at))[0])
+    succ = _pose_index(env.width, nxt[..., 0], nxt[..., 1], nxt[..., 2]).reshape(-1, N_ACTIONS)
+    big = np.iinfo(np.int32).max // 4
+    dist = np.full((len(targets), succ.shape[0]), big, np.int64)
+    dist[np.arange(len(targets)), targets] = 0
+    while True:
+        new = np.minimum(dist, 1 + dist[:, succ].min(-1))
+        if np.array_equal(new, dist):
+            return dist
+        dist = new
+
+
+def team_lower_bound(env: USAREnv) -> int:
+    """A lower bound on ``optimal_team_steps`` that stays cheap at any map size.
+
+    Over every assignment of victims to medics, the least makespan (the longest medic's tour) of
+    single-agent exact tours: each medic alone on the map (victims block, other medics ignored) triages
+    its victims in the best order, turns and TRIAGE actions counted. Exact by dynamic programming: per
+    medic over (victims triaged, the pose it triaged the last one from), then over victim subsets for the
+    assignment. Only collisions between medics are left out, so the bound is <= the exact optimum (tested
+    on every map where the joint search runs) and equal to it for one medic.
+    """
+    n, v = env.n_agents, env.n_victims
+    if v > 16:
+        raise ValueError(f"team_lower_bound enumerates victim subsets: {v} victims is more than 16")
+    h, w = env.height, env.width
+    solid = np.asarray(env._solid)
+    poses, victim_of = [], []  # triage poses: an open cell next to a victim, facing it
+    for k, (r, c) in enumerate(env.victim_pos):
+        for d, (dr, dc) in enumerate(DIR_DELTA):
+            pr, pc = r - dr, c - dc  # facing d from (pr, pc) looks at (r, c)
+            if 0 <= pr < h and 0 <= pc < w and not solid[pr, pc]:
+                poses.append(int(_pose_index(w, pr, pc, d))), victim_of.append(k)
+    poses, victim_of = np.asarray(poses), np.asarray(victim_of)
+    dist = pose_distances(env, poses)  # [Q, poses]
+    inf = np.iinfo(np.int64).max // 4
+    full = 1 << v
+    costs = np.zeros((n, full), np.int64)
+    bit = 1 << victim_of  # [Q]
+    between = dist[:, poses].T + 1  # [from q', to q]: move to q, then TRIAGE
+    for i, (r, c) in enumerate(env.layout.agent_start):
+        f = np.full((full, len(poses)), inf, np.int64)
+        f[bit, np.arange(len(poses))] = dist[:, _pose_index(w, r, c, env.start_dir)] + 1
+        for s in range(1, full):  # subsets in increasing order: s minus one victim comes before s
+            last = (s & bit) != 0
+            prev = s & ~bit  # per pose q: the set before its victim
+            reach = f[prev[:, None], np.arange(len(poses))[None, :]] + between.T  # [q, q']: end at q after q'
+            ok = ((prev[:, None] & bit[None, :]) != 0) & (prev[:, None] != 0)
+            step = np.where(ok, reach, inf).min(1)
+            f[s] = np.where(last, np.minimum(f[s], step), inf)
+        costs[i] = f.min(1)
+        costs[i, 0] = 0
+    best = costs[0].copy()
+    for i in range(1, n):  # assignment: best[S] = min over T subset of S of max(best[S \ T], costs[i][T])
+        new = np.full(full, inf, np.int64)
+        for s in range(full):
+            t = s
+            while True:
+                new[s] = min(new[s], max(best[s & ~t], costs[i][t]))
+                if t == 0:
+                    break
+                t = (t - 1) & s
+        best = new
+    if best[full - 1] >= inf:
+        raise Unreachable(f"some victim of {env.layout.name!r} cannot be triaged")
+    return int(best[full - 1])

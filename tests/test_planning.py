@@ -276,3 +276,39 @@ def test_two_rooms_hand_plan_finishes_in_18_steps():
     assert rewards[16] == 100.0 and rewards[17] == 100.0 and sum(rewards) == 200.0
     np.testing.assert_array_equal(state.agent_pos, [[7, 13], [0, 1]])
     assert bool(info["terminated"]) and int(state.t) == 18
+
+
+# -- the lower bound ------------------------------------------------------------------------------
+def _generated_env(medics, victims, seed, height=9, width=14, rooms=3):
+    from jaxusar.envs import mapgen
+
+    return envs.make(mapgen.generated_layout(height, width, rooms, medics, victims, seed)[0])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lower_bound_is_exact_for_one_medic(seed):
+    """Alone, a medic's best tour is the optimum: the subset DP must find exactly the BFS answer."""
+    env = _generated_env(1, 3, seed)
+    assert planning.team_lower_bound(env) == planning.optimal_team_steps(env)
+
+
+@pytest.mark.parametrize("name", ["two_rooms", "three_rooms"])
+def test_lower_bound_never_exceeds_the_exact_optimum(name):
+    env = envs.make(name)
+    assert planning.team_lower_bound(env) <= planning.optimal_team_steps(env)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_lower_bound_on_generated_two_medic_maps(seed):
+    env = _generated_env(2, 3, seed)
+    bound, exact = planning.team_lower_bound(env), planning.optimal_team_steps(env)
+    assert 0 < bound <= exact
+    # a bound from fewer victims is no larger: dropping victims can only shorten every tour
+    fewer = envs.make(env.layout.subset(victims=[0, 1]))
+    assert planning.team_lower_bound(fewer) <= bound
+
+
+def test_lower_bound_runs_where_the_joint_search_cannot():
+    env = envs.make("office")  # 4 medics, 6 victims: up to 1.6e15 joint states
+    assert planning.joint_states_bound(env) > 1e15
+    assert planning.team_lower_bound(env) > 0
