@@ -199,6 +199,7 @@ def train(args: argparse.Namespace) -> int:
     from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import train as experiment
+    from jaxusar.planning import SearchTooLarge
 
     check_run_arguments(args)
     try:
@@ -215,7 +216,7 @@ def train(args: argparse.Namespace) -> int:
         extra = {} if options is None else {"options": options}
         experiment.run(cfg, args.trials, out, force=args.force, quiet=args.quiet,
                        checkpoint_every=args.checkpoint_every, command=args.command_line, **extra)
-    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError, SearchTooLarge) as err:
         raise UsageError(str(err)) from None
     return 0
 
@@ -275,6 +276,7 @@ def reproduce(args: argparse.Namespace) -> int:
     from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import reproduce as experiment
+    from jaxusar.planning import SearchTooLarge
 
     check_run_arguments(args)
     if args.workers is not None and args.workers < 1:
@@ -283,7 +285,7 @@ def reproduce(args: argparse.Namespace) -> int:
     try:
         experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
                        checkpoint_every=args.checkpoint_every, workers=args.workers, command=args.command_line)
-    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError, SearchTooLarge) as err:
         raise UsageError(str(err)) from None
     return 0
 

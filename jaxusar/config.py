@@ -80,8 +80,8 @@ class DQNConfig:
     n_step_cut_exploring: bool = _field(False, doc="n-step returns also stop before an exploring action "
                                         "(Watkins's cut: they then estimate Q*, not the exploring policy's Q)")
     n_step_cut_greedy: bool = _field(False, doc="n-step returns stop before a stored action that is not the "
-                                     "current target net's greedy one (Watkins's cut at update time: old "
-                                     "exploring data stop too)")
+                                     "current target net's argmax over all actions (Watkins's cut at update "
+                                     "time: old exploring data stop too)")
     reward_scale: float = _field(1.0, _positive, "> 0: rewards are multiplied by this before learning (Q is "
                                  "learned in scaled units; the greedy policy is unchanged)")
     target_update_every: int = _field(250, _positive, "updates between hard target copies (if tau == 1)")

@@ -27,6 +27,11 @@ class Unreachable(RuntimeError):
     """The goal cannot be reached from the start state."""
 
 
+class SearchTooLarge(MemoryError):
+    """The exact joint search would visit more states than it may (raised before searching when even the
+    map's bound on joint states is far past the limit)."""
+
+
 class _Codec:
     """Mixed-radix integer <-> batched EnvState (t is not part of the planning state)."""
 
@@ -161,7 +166,17 @@ def optimal_team_steps(env: USAREnv, max_states: int = 20_000_000) -> int:
     Exact: searches the joint state of all agents, so agents blocking each other is accounted for.
     Ignores the horizon (an optimum above it means the map cannot be solved within it).
     """
+    _check_size(env, max_states)
     return _bfs(env, env.initial_state(), _all_triaged, max_states)
+
+
+def _check_size(env: USAREnv, max_states: int) -> None:
+    bound = joint_states_bound(env)
+    if bound > 100 * max_states:
+        raise SearchTooLarge(
+            f"the exact optimum of {env.layout.name!r} ({env.n_agents} medics, {env.n_victims} victims) needs a joint "
+            f"search over up to {bound:.2g} states, past the planner's limit of {max_states:.2g}; training there "
+            "needs a reference other than the exact optimum (planning.team_lower_bound), not wired in yet")
 
 
 def optimal_team_plan(env: USAREnv, max_states: int = 20_000_000) -> np.ndarray:
@@ -170,6 +185,7 @@ def optimal_team_plan(env: USAREnv, max_states: int = 20_000_000) -> np.ndarray:
     Replaying it through ``env.step`` triages every victim at step T (when T <= horizon). Among the many
     optimal plans it returns a fixed one; agents with slack may spend it on no-op turns or triages.
     """
+    _check_size(env, max_states)
     return _search(env, env.initial_state(), _all_triaged, max_states, record=True)[1]
 
 

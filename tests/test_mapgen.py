@@ -158,3 +158,13 @@ def test_demo_on_a_map_too_big_for_the_exact_search(tmp_path, capsys):
     stdout = capsys.readouterr().out
     assert "Optimal team steps: not searched; the exact joint BFS could visit up to" in stdout
     assert "room_0 -- hall_0" in stdout and (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("command", [["train", "iql", "--map", "four_rooms"],
+                                     ["reproduce", "--quick", "--set", "env.map=office"]])
+def test_training_where_the_exact_optimum_is_out_of_reach_is_one_line(command, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(command + ["--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "joint search over up to" in err
+    assert "team_lower_bound" in err

@@ -203,8 +203,11 @@ def test_agent_distances_match_brute_force():
 
 
 def test_max_states_guard():
-    with pytest.raises(MemoryError, match="raise max_states"):
-        planning.optimal_team_steps(envs.make("two_rooms"), max_states=50)
+    env = envs.make("two_rooms")  # up to 1.2e6 joint states
+    with pytest.raises(MemoryError, match="raise max_states"):  # found while searching
+        planning.optimal_team_steps(env, max_states=20_000)
+    with pytest.raises(planning.SearchTooLarge, match="up to 1.2e\\+06 states"):  # refused before searching
+        planning.optimal_team_steps(env, max_states=50)
 
 
 # -- two rooms ---------------------------------------------------------------------------------
