@@ -220,6 +220,15 @@ def agent_distances(env: USAREnv, agent: int, start_pos=None, start_dir=None) ->
 
 
 # -- single-agent distance tables (sub-policy optimum from any start) --------------------------------
+def _fixed_point(dist: np.ndarray, relax) -> np.ndarray:
+    """Iterate dist = min(dist, relax(dist)) until nothing changes (shortest paths, Bellman-Ford style)."""
+    while True:
+        new = np.minimum(dist, relax(dist))
+        if np.array_equal(new, dist):
+            return dist
+        dist = new
+
+
 @jax.jit
 def _single_agent_successors(solid, victim_at):
     """int32[H, W, 4, A, 3] next (row, col, dir) and bool[H, W, 4, A] 'triaged the victim' per action."""
@@ -251,13 +260,12 @@ def steps_to_goal(solid: np.ndarray, victim_at: np.ndarray, goal_region_mask: np
     dist = np.full((h, w, 4), inf, np.int64)
     if goal_region_mask is not None:
         dist[goal_region_mask] = 0
-    while True:
+
+    def relax(dist):
         after = dist[nxt[..., 0], nxt[..., 1], nxt[..., 2]]  # [H, W, 4, A]
-        cost = np.where(hit, 1, 1 + after) if triage else 1 + after
-        new = np.minimum(dist, cost.min(-1))
-        if np.array_equal(new, dist):
-            break
-        dist = new
+        return (np.where(hit, 1, 1 + after) if triage else 1 + after).min(-1)
+
+    dist = _fixed_point(dist, relax)
     dist[solid] = -1
     return np.where(dist >= inf, -1, dist).astype(np.int32)
 
@@ -275,15 +283,12 @@ def pose_distances(env: USAREnv, targets: np.ndarray) -> np.ndarray:
     big = np.iinfo(np.int32).max // 4
     dist = np.full((len(targets), succ.shape[0]), big, np.int64)
     dist[np.arange(len(targets)), targets] = 0
-    while True:
-        new = np.minimum(dist, 1 + dist[:, succ].min(-1))
-        if np.array_equal(new, dist):
-            return dist
-        dist = new
+    return _fixed_point(dist, lambda d: 1 + d[:, succ].min(-1))
 
 
 def team_lower_bound(env: USAREnv) -> int:
-    """A lower bound on ``optimal_team_steps`` that stays cheap at any map size.
+    """A lower bound on ``optimal_team_steps`` that stays cheap at any map size (its cost grows with the
+    victims instead: 2^victims poses tables per medic, 3^victims for the assignment; at most 16 victims).
 
     Over every assignment of victims to medics, the least makespan (the longest medic's tour) of
     single-agent exact tours: each medic alone on the map (victims block, other medics ignored) triages
@@ -317,7 +322,7 @@ def team_lower_bound(env: USAREnv) -> int:
             last = (s & bit) != 0
             prev = s & ~bit  # per pose q: the set before its victim
             reach = f[prev[:, None], np.arange(len(poses))[None, :]] + between.T  # [q, q']: end at q after q'
-            ok = ((prev[:, None] & bit[None, :]) != 0) & (prev[:, None] != 0)
+            ok = (prev[:, None] & bit[None, :]) != 0  # q' triaged a victim of the set before
             step = np.where(ok, reach, inf).min(1)
             f[s] = np.where(last, np.minimum(f[s], step), inf)
         costs[i] = f.min(1)
