@@ -11,6 +11,7 @@ import argparse
 import json
 import shlex
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -65,7 +66,8 @@ def add_demo(subparsers) -> None:
 def demo(args: argparse.Namespace) -> int:
     from jaxusar.envs import ACTION_NAMES, DIRECTION_NAMES
     from jaxusar.envs.render import render_ascii, rollout_states, save_episode_strip, save_map
-    from jaxusar.planning import agent_distances, joint_states_bound, optimal_team_plan, optimal_team_steps
+    from jaxusar.planning import (agent_distances, joint_states_bound, optimal_team_plan, optimal_team_steps,
+                                  team_lower_bound)
 
     env = make_env(args, horizon=args.horizon)
     out = output_dir(args.out)  # before the work, so a bad --out fails fast
@@ -84,6 +86,10 @@ def demo(args: argparse.Namespace) -> int:
         print(f"  {r}  {name:<14} {kind:<5} {cells:3d} cells   victims {str(victims):<8} agents at start {agents}")
     print("  edges: " + (", ".join(f"{a} -- {b}" for a, b in graph.edges()) or "(none)"))
 
+    start = time.perf_counter()
+    lower = team_lower_bound(env)
+    print(f"\nLower bound on the team's steps (exact single-medic tours over victim assignments, collisions "
+          f"ignored): {lower} ({time.perf_counter() - start:.2f} s)")
     bound = joint_states_bound(env)
     if bound > DEMO_MAX_STATES:
         steps = None
@@ -320,11 +326,13 @@ def maps_generate(args: argparse.Namespace) -> int:
     from jaxusar.envs.render import save_map
 
     name = args.name or f"rooms{args.rooms}_{args.height}x{args.width}_s{args.seed}"
+    start = time.perf_counter()
     try:
         layout, text, regions = generated_layout(args.height, args.width, args.rooms, args.medics, args.victims,
                                                  args.seed, name=name)
     except GeneratorError as err:
         raise UsageError(str(err)) from None
+    seconds = time.perf_counter() - start
     out = output_dir(args.out)
     (out / f"{name}.txt").write_text(text)
     (out / f"{name}.regions.txt").write_text(regions)
@@ -332,7 +340,7 @@ def maps_generate(args: argparse.Namespace) -> int:
     print(layout.to_ascii())
     print(f"{layout.shape[0]}x{layout.shape[1]}, {len(layout.region_names)} regions "
           f"({sum(k == 'room' for k in layout.region_kinds)} rooms), {len(layout.agent_start)} medics, "
-          f"{len(layout.victim_pos)} victims")
+          f"{len(layout.victim_pos)} victims; generated, segmented and checked in {seconds * 1000:.0f} ms")
     print(f"Wrote {out / f'{name}.txt'}, {out / f'{name}.regions.txt'} and {png}; "
           f"train on it with --set env.map={out / f'{name}.txt'}")
     return 0

@@ -135,7 +135,7 @@ def test_maps_generate_cli(tmp_path, capsys):
     assert (out / f"{stem}.png").read_bytes()[:4] == b"\x89PNG"
     env = envs.make(str(out / f"{stem}.txt"))  # loads with its written region grid
     assert env.n_agents == 4 and env.graph.kinds.count("room") == 8
-    assert "9 regions (8 rooms), 4 medics, 6 victims" in capsys.readouterr().out
+    assert "9 regions (8 rooms), 4 medics, 6 victims; generated, segmented and checked in" in capsys.readouterr().out
     with pytest.raises(SystemExit) as e:
         main(["maps", "generate", "--rooms", "100", "--out", str(out)])
     err = capsys.readouterr().err
@@ -157,6 +157,7 @@ def test_demo_on_a_map_too_big_for_the_exact_search(tmp_path, capsys):
     assert main(["demo", "--map", "four_rooms", "--out", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "Optimal team steps: not searched; the exact joint BFS could visit up to" in stdout
+    assert "Lower bound on the team's steps (exact single-medic tours" in stdout
     assert "room_0 -- hall_0" in stdout and (out / "map.png").read_bytes()[:4] == b"\x89PNG"
 
 
