@@ -50,7 +50,7 @@ def navigation_subtask(horizon: int = 300, name: str = SUBTASK, gamma: float = 0
     options = options_from_graph(env.graph)
     task = next(t for t in sp.make_tasks(env, options) if t.name == name)
     task = dataclasses.replace(task, starts=task.test_starts)  # the medic's start only
-    stacked = sp.task_params(env, options, [task], gamma, {})
+    stacked = sp.task_params(env, [task], gamma, {})
     params = jax.tree.map(lambda x: np.asarray(x[0]), stacked)
     start = tuple(int(v) for v in task.test_starts[0])
     return Subtask(env, sp.SubtaskEnv(env, horizon), params, start, int(params.dist[start]))

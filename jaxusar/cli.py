@@ -235,8 +235,9 @@ def add_reproduce(subparsers) -> None:
                     "vmapped call per trainer, side by side; write DIR/results.json, DIR/table2.md, the figures "
                     "and one folder per algorithm. Interrupted runs resume from their checkpoints.")
     p.add_argument("--trials", type=int, default=8, help="independent seeds per algorithm (default 8, as the paper)")
-    p.add_argument("--out", type=Path, default=Path("results/two_rooms"), metavar="DIR",
-                   help="results folder (default results/two_rooms)")
+    p.add_argument("--map", default=None, metavar="NAME|PATH",
+                   help="a shipped map or a path to a .txt layout (README: 'Your own map'); default two_rooms")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/<map>)")
     p.add_argument("--quick", action="store_true",
                    help="reduced budgets: the same pipeline in under two minutes on a 2-core CPU, for a first look")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
@@ -290,7 +291,8 @@ def reproduce(args: argparse.Namespace) -> int:
     start_distributed(args)
     try:
         experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
-                       checkpoint_every=args.checkpoint_every, workers=args.workers, command=args.command_line)
+                       checkpoint_every=args.checkpoint_every, workers=args.workers, command=args.command_line,
+                       map=args.map)
     except (config.ConfigError, LayoutError, FileExistsError, CheckpointError, SearchTooLarge) as err:
         raise UsageError(str(err)) from None
     return 0

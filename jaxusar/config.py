@@ -127,10 +127,15 @@ class DOCConfig:
 class CoordinatorConfig:
     """The SMDP coordinator over joint options (paper Sec. IV-C)."""
 
+    kind: str = _field("flat", lambda s: s in ("flat", "factored"),
+                       "flat (the paper: one Q-value per joint option, options ^ medics of them) or factored (one "
+                       "option head per medic, values summed: linear in the medics)")
+    max_joint_options: int = _field(4096, _positive, "the flat coordinator refuses a map with more joint options")
     episodes: int = _field(100, _positive, "coordinator training episodes per trial")
     test_every: int = _field(1, _positive, "a greedy team test every this many coordinator episodes")
     invalid_penalty: float = _field(-100.0, doc="reward for a joint option whose initiation set is not met")
-    option_timeout: int = _field(50, _positive, "an option running this many primitive steps terminates")
+    option_timeout: int = _field(0, _non_negative, "an option running this many primitive steps terminates; 0: "
+                                 "1.5x the longest optimal path of any option, at least 50 (two_rooms: 50)")
     hidden: tuple[int, ...] = _field((32,), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
     lr: float = _field(5e-3, _positive)
     gamma: float = _field(0.95, lambda g: 0 < g <= 1,
@@ -170,6 +175,10 @@ class HierarchicalConfig:
     navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
                                  "navigation tasks start half at the medic's start and half anywhere in the "
                                  "initiation set (mixed), or anywhere in it (initiation)")
+    navigation: str = _field("chained", lambda s: s in ("adjacent", "chained"),
+                             "adjacent (the paper: a sub-policy per medic and room next to its start region) or "
+                             "chained (a sub-policy per region, shared by the medics; NAVIGATE to any room chains "
+                             "them along the region graph's shortest path)")
     coordinator: CoordinatorConfig = dataclasses.field(default_factory=CoordinatorConfig)
 
 

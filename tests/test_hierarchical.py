@@ -10,6 +10,7 @@ from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
 from jaxusar.config import ConfigError
+from jaxusar.experiments.hierarchical import auto_option_timeout
 
 THREE_ROOMS = """
 V..#...#..V
@@ -84,7 +85,7 @@ def test_options_on_a_three_room_map_need_no_new_code():
 def test_pseudo_reward_env(two_rooms):
     env, opts = two_rooms
     tasks = sp.make_tasks(env, opts)
-    params = sp.task_params(env, opts, tasks, 0.99, {"TRIAGE-BOTTOM-VICTIM": 0.9})
+    params = sp.task_params(env, tasks, 0.99, {"TRIAGE-BOTTOM-VICTIM": 0.9})
     senv = sp.SubtaskEnv(env, horizon=50)
     k = [t.name for t in tasks].index("agent1:NAVIGATE-TO-TOP-ROOM")
     p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
@@ -105,13 +106,13 @@ def test_pseudo_reward_env(two_rooms):
     assert float(params.gamma[kb]) == pytest.approx(0.9)
     assert params.solid[kb][8, 13] and not params.solid[kb][0, 0]  # only its own victim is kept
     with pytest.raises(ConfigError, match="TRIAGE-NOWHERE.*does not have.*task_gamma={}"):
-        sp.task_params(env, opts, tasks, 0.99, {"TRIAGE-NOWHERE": 0.5})
+        sp.task_params(env, tasks, 0.99, {"TRIAGE-NOWHERE": 0.5})
 
 
 def test_pseudo_env_times_out_with_step_penalty(two_rooms):
     env, opts = two_rooms
     tasks = sp.make_tasks(env, opts)
-    params = sp.task_params(env, opts, tasks, 0.99, {})
+    params = sp.task_params(env, tasks, 0.99, {})
     senv = sp.SubtaskEnv(env, horizon=3)
     p = jax.tree.map(lambda x: jnp.asarray(x[0]), params)
     _, s = senv.reset_test(None if False else jax.random.PRNGKey(0), p)
@@ -173,48 +174,32 @@ def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
     np.testing.assert_allclose(float(row["gamma"]), 0.95 ** 3, rtol=1e-6)
 
 
-def _oracle_coordinator(episodes=60, trials=2, seed=0, **overrides):
-    """The coordinator trained over exact ("oracle") sub-policies: argmin of the planner's distances."""
-    env, opts = envs.make("two_rooms", horizon=300), None
-    opts = options_from_graph(env.graph)
-    tasks = sp.make_tasks(env, opts)
-    params = sp.task_params(env, opts, tasks, 0.99, {})
-    nxt, hit = planning._single_agent_successors(jnp.asarray(params.solid[0]), jnp.asarray(params.victim_at[0]))
-    senv = sp.SubtaskEnv(env, env.horizon)
-    h, w = env.height, env.width
+def _oracle_macro(env, navigation, cfg):
+    opts = options_from_graph(env.graph, navigation)
+    tasks = sp.make_tasks(env, opts, navigation=navigation)
+    params = sp.task_params(env, tasks, 0.99, {})
+    act, sub = sp.exact_subpolicies(env, params)
+    macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), act,
+                           sp.SubtaskEnv(env, env.horizon).observe, cfg.gamma, cfg.invalid_penalty,
+                           cfg.option_timeout or auto_option_timeout(env, opts, tasks, params),
+                           factored=cfg.kind == "factored")
+    return macro, tasks, sub
 
-    def oracle(dist, obs):  # dist: int32[H, W, 4] of this task; acts on the sub-task observation
-        r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
-        after = dist[nxt[r, c, d, :, 0], nxt[r, c, d, :, 1], nxt[r, c, d, :, 2]]
-        return jnp.argmin(jnp.where(after < 0, 10_000, after)).reshape(1)
 
-    # successors above ignore victims, so triage tasks use their own tables' TRIAGE hit
-    def act(dist_and_hit, obs):
-        dist, tri = dist_and_hit
-        r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
-        return jnp.where(tri[r, c, d], jnp.array([3]), oracle(dist, obs))
-
-    policy_for = np.array([[0, 2, 4, 5], [1, 3, 4, 5]])
-    assert [tasks[k].name for k in (0, 1, 2, 3)] == ["agent0:NAVIGATE-TO-TOP-ROOM", "agent1:NAVIGATE-TO-TOP-ROOM",
-                                                     "agent0:NAVIGATE-TO-BOTTOM-ROOM", "agent1:NAVIGATE-TO-BOTTOM-ROOM"]
-    facing = []  # bool[H, W, 4]: facing the task's victim (triage tasks), else all False
-    for k in range(len(tasks)):
-        f = np.zeros((h, w, 4), bool)
-        v = np.argwhere(params.victim_at[k] == 0)
-        if len(v):
-            for d, (dr, dc) in enumerate(envs.usar.DIR_DELTA):
-                r, c = v[0] - (dr, dc)
-                if 0 <= r < h and 0 <= c < w:
-                    f[r, c, d] = True
-        facing.append(f)
-    sub = (jnp.asarray(params.dist), jnp.asarray(np.stack(facing)))
+def _oracle_coordinator(episodes=60, trials=2, seed=0, map="two_rooms", navigation="adjacent", optimal=18,
+                        **overrides):
+    """The coordinator trained over exact ("oracle") sub-policies."""
+    env = envs.make(map, horizon=300)
     cfg = config.CoordinatorConfig(episodes=episodes, **overrides)
-    macro = coord.MacroEnv(env, opts, policy_for, act, senv.observe, cfg.gamma, cfg.invalid_penalty, cfg.option_timeout)
+    macro, tasks, sub = _oracle_macro(env, navigation, cfg)
+    if map == "two_rooms":
+        assert [t.name for t in tasks[:4]] == ["agent0:NAVIGATE-TO-TOP-ROOM", "agent1:NAVIGATE-TO-TOP-ROOM",
+                                               "agent0:NAVIGATE-TO-BOTTOM-ROOM", "agent1:NAVIGATE-TO-BOTTOM-ROOM"]
     learner = coord.make_learner(macro, cfg)
     from jaxusar.core import Trainer
 
     tc = config.TrainConfig(episodes=episodes, test_every=1, chunk_steps=64)
-    trainer = Trainer(macro, learner, tc, learning_starts=cfg.learning_starts, train_every=1, optimal_steps=18,
+    trainer = Trainer(macro, learner, tc, learning_starts=cfg.learning_starts, train_every=1, optimal_steps=optimal,
                       min_episode_steps=1, gradient_steps=cfg.gradient_steps)
     keys = jax.random.split(jax.random.PRNGKey(seed), trials)
     sub_b = jax.tree.map(lambda x: jnp.broadcast_to(x, (trials, *x.shape)), sub)
@@ -242,9 +227,7 @@ def _policy_tables(env, params, k, noise: float, seed: int):
     action in a ``noise`` fraction of the states; and the numpy successor tables to roll it out."""
     nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
                                                                             jnp.asarray(params.victim_at[k])))
-    dist = params.dist[k]
-    after = np.where(hit, -1, dist[nxt[..., 0], nxt[..., 1], nxt[..., 2]])
-    table = np.argmin(np.where(after == -1, -1, np.where(after < 0, 10_000, after)), -1)
+    table = np.asarray(sp.exact_subpolicies(env, params)[1][k])
     rng = np.random.default_rng(seed)
     flip = rng.random(table.shape) < noise
     return np.where(flip, rng.integers(0, 4, table.shape), table), nxt, hit
@@ -256,7 +239,7 @@ def test_coverage_equals_a_rollout_from_every_initiation_state(two_rooms, k, noi
     a state counts when the rollout reaches the sub-goal in exactly the planner's distance."""
     env, opts = two_rooms
     tasks = sp.make_tasks(env, opts)
-    params = sp.task_params(env, opts, tasks, 0.99, {})
+    params = sp.task_params(env, tasks, 0.99, {})
     senv = sp.SubtaskEnv(env, env.horizon)
     table, nxt, hit = _policy_tables(env, params, k, noise, seed=k)
     h, w = env.height, env.width
@@ -278,3 +261,129 @@ def test_coverage_equals_a_rollout_from_every_initiation_state(two_rooms, k, noi
     got = float(jax.jit(senv.coverage, static_argnums=0)(greedy, p))
     assert got == pytest.approx(good / len(tasks[k].initiation), abs=1e-6)
     assert (got == 1.0) == (noise == 0.0)  # exact everywhere, and the noisy tables miss some states
+
+
+# -- chained navigation, the factored coordinator, maps beyond two rooms ----------------------------------
+def test_next_hop_follows_the_region_graph():
+    from jaxusar.algos.options import next_hop
+
+    # regions 0 - 1 - 2 - 3 in a line, 4 alone
+    adj = np.zeros((5, 5), bool)
+    for a, b in ((0, 1), (1, 2), (2, 3)):
+        adj[a, b] = adj[b, a] = True
+    hop = next_hop(adj)
+    assert hop[0, 3] == 1 and hop[1, 3] == 2 and hop[2, 3] == 3 and hop[3, 0] == 2
+    assert hop[0, 0] == -1 and hop[0, 4] == -1 and hop[4, 0] == -1  # itself, unreachable
+
+
+def test_chained_navigation_reaches_any_room_with_one_subpolicy_per_region():
+    """office: 9 rooms off one corridor, 4 medics. Chained: one navigation task per region (10), shared by the
+    medics (never medics x rooms^2); NAVIGATE-TO-R starts anywhere but R and runs to-hall then to-R."""
+    env = envs.make("office", horizon=300)
+    opts = options_from_graph(env.graph, "chained")
+    tasks = sp.make_tasks(env, opts, navigation="chained")
+    nav = [t for t in tasks if t.victim < 0]
+    assert len(nav) == env.graph.n_regions == 10 and all(t.agent == -1 for t in nav)
+    assert len(tasks) == len(nav) + env.n_victims
+    table = sp.policy_table(env, opts, tasks, "chained")
+    hall, room0, room5 = (env.graph.index(n) for n in ("hall_0", "room_0", "room_5"))
+    to5 = opts.names.index("NAVIGATE-TO-ROOM-5")
+    assert tasks[table[0, room0, to5]].name == "NAVIGATE-TO-HALL-0"
+    assert tasks[table[3, hall, to5]].name == "NAVIGATE-TO-ROOM-5"
+    assert table[0, room5, to5] == -1  # not from inside the room itself
+    assert bool(opts.can_initiate(room0, jnp.zeros(env.n_victims, bool))[to5])
+
+
+def test_adjacent_navigation_names_a_room_out_of_reach():
+    """Rooms in a row, A - B - C: the paper's adjacent sub-policies take the medic in A to B only, so C's victim
+    is out of reach (a one-line error naming the room and the fix); chained navigation reaches it by B."""
+    from jaxusar.experiments.hierarchical import check_rooms_reachable
+
+    grid = "A..#...#..V\n...........\n...#...#..."
+    regions = "A a_room room\nB b_room room\nC c_room room\n---\nAAA#BBB#CCC\nAAABBBBCCCC\nAAA#BBB#CCC"
+    env = envs.make(envs.parse_layout(grid, regions, "row"))
+    for navigation in ("adjacent", "chained"):
+        opts = options_from_graph(env.graph, navigation)
+        table = sp.policy_table(env, opts, sp.make_tasks(env, opts, navigation=navigation), navigation)
+        if navigation == "adjacent":
+            with pytest.raises(ConfigError, match="'c_room'.*navigation=chained"):
+                check_rooms_reachable(env, opts, table, navigation)
+        else:
+            check_rooms_reachable(env, opts, table, navigation)
+            to_c = opts.names.index("NAVIGATE-TO-C-ROOM")
+            assert table[0, env.graph.index("a_room"), to_c] >= 0
+
+
+def coord_defaults():
+    return {"algo": "hierarchical", **coord.DEFAULTS}
+
+
+def test_a_chained_option_runs_across_regions_to_its_room():
+    """Over exact sub-policies, one macro step of NAVIGATE-TO-ROOM-5 from inside room_0 ends in room_5, by the
+    hall, within a few steps of the single-medic shortest path."""
+    env = envs.make(envs.load_layout("office").subset(agents=[0]), horizon=300)  # one medic: no other option ends it
+    cfg = config.CoordinatorConfig(kind="factored")
+    macro, tasks, sub = _oracle_macro(env, "chained", cfg)
+    g = env.graph
+    room0, room5 = g.index("room_0"), g.index("room_5")
+    _, s = env.reset(None)
+    cell = np.argwhere(g.cell_region == room0)[0]
+    s = s.replace(agent_pos=s.agent_pos.at[0].set(jnp.asarray(cell)))
+    options = np.array([macro.options.names.index("NAVIGATE-TO-ROOM-5")], np.int32)
+    obs, s2, _, _, info = jax.jit(macro.step)(None, s, jnp.asarray(options), coord.CoordinatorParams(subpolicy=sub))
+    assert bool(info["valid"])
+    assert int(g.cell_region[tuple(np.asarray(s2.agent_pos[0]))]) == room5
+    shortest = planning.steps_to_goal(env.layout.blocked, np.full(env.layout.shape, -1, np.int32),
+                                      g.cell_region == room5)[tuple(cell) + (int(s.agent_dir[0]),)]
+    assert shortest <= int(info["steps"]) <= shortest + 2
+
+
+def test_factored_coordinator_sums_per_medic_heads():
+    """FactoredDQN: Q(s, a) = sum_i Q_i(s, a_i); the target maximises each head over its valid options;
+    greedy choices respect each medic's mask; parameters grow linearly in the medics."""
+    from jaxusar.core.learners import FactoredDQN
+
+    cfg = config.DQNConfig(hidden=(8,), batch_size=2, buffer_capacity=4)
+    valid = lambda obs: jnp.array([[True, False, True], [False, True, True]])
+    f = FactoredDQN(3, 3, 2, cfg, valid)
+    q = jnp.array([[1.0, 2.0, 3.0, 10.0, 20.0, 30.0], [0.0, 5.0, -1.0, 7.0, 8.0, -9.0]])
+    np.testing.assert_allclose(f._joint_value(q, jnp.array([[0, 2], [1, 0]])), [1.0 + 30.0, 5.0 + 7.0])
+    batch = {"reward": jnp.array([1.0, 2.0]), "discount": jnp.array([0.5, 0.0]), "next_obs": jnp.zeros((2, 3))}
+    # head 0 over options {0, 2}, head 1 over {1, 2}: row 0: 3 + 30; row 1: terminal
+    np.testing.assert_allclose(f._target(batch, q, q), [1.0 + 0.5 * 33.0, 2.0])
+    state = f.init(jax.random.PRNGKey(0), {"obs": jnp.zeros(3), "action": jnp.zeros(2, jnp.int32),
+                                           "reward": jnp.float32(0), "next_obs": jnp.zeros(3),
+                                           "info": {"terminated": jnp.bool_(False)}, "done": jnp.bool_(False)})
+    a, _ = f.greedy_act(state.params, jnp.ones(3), None)
+    assert a.shape == (2,) and int(a[0]) in (0, 2) and int(a[1]) in (1, 2)
+    size = lambda n: sum(x.size for x in jax.tree.leaves(
+        FactoredDQN(3, 15, n, cfg, None).dqn.network.init(jax.random.PRNGKey(0), jnp.zeros(3))))
+    assert size(4) - size(2) == 2 * (size(3) - size(2))  # linear in the medics (the flat head: 15^n)
+
+
+def test_flat_coordinator_refuses_too_many_joint_options():
+    from jaxusar.experiments.hierarchical import build
+
+    with pytest.raises(ConfigError, match=r"50,625 joint options \(15 options \^ 4 medics\).*factored"):
+        build(config.load(None, ["env.map=office", "hierarchical.coordinator.kind=flat"], defaults=coord_defaults()))
+
+
+def test_automatic_option_timeout():
+    """0 = 1.5x the longest optimal option path, at least 50: 50 on two_rooms (its results unchanged),
+    more on office, where crossing the map to a room takes 55 steps."""
+    from jaxusar.experiments.hierarchical import build
+
+    two = build(config.load(None, [], defaults=coord_defaults()))
+    assert two["macro"].option_timeout == 50
+    office = build(config.load(None, ["env.map=office"], defaults=coord_defaults()))
+    assert office["macro"].option_timeout == 83  # ceil(1.5 * 55)
+
+
+def test_factored_coordinator_solves_four_rooms_over_exact_subpolicies():
+    """The factored coordinator over exact chained sub-policies, three medics: every trial triages all four
+    victims, and the best team is within 1.25x of the lower bound (25 steps)."""
+    bound = planning.team_lower_bound(envs.make("four_rooms"))
+    env, macro, learner, res, _ = _oracle_coordinator(episodes=60, trials=2, map="four_rooms", navigation="chained",
+                                                      optimal=bound, kind="factored")
+    assert all(e is not None for e in res["episodes_to_solved"]), res["episodes_to_solved"]
+    assert all(length <= 1.25 * bound for length in res["best_length"]), res["best_length"]

@@ -30,9 +30,10 @@ def tiny_env(**kw):
 
 def example_transition(learner, env):
     obs, state = env.reset(None)
-    next_obs, _, reward, done, info = env.step(None, state, jnp.array([1, 2]))
-    return {"obs": obs, "action": jnp.array([1, 2], jnp.int32), "reward": reward, "next_obs": next_obs,
-            "done": done, "info": info, "carry": learner.init_carry(), "next_carry": jnp.array([0, 1], jnp.int32)}
+    action = jnp.arange(1, env.n_agents + 1, dtype=jnp.int32) % envs.N_ACTIONS
+    next_obs, _, reward, done, info = env.step(None, state, action)
+    return {"obs": obs, "action": action, "reward": reward, "next_obs": next_obs, "done": done, "info": info,
+            "carry": learner.init_carry(), "next_carry": jnp.arange(env.n_agents, dtype=jnp.int32) % 2}
 
 
 def make(k=2, cfg=SMALL, **doc):
@@ -74,10 +75,46 @@ def test_shapes_and_separate_agents(k):
     np.testing.assert_array_equal(st.critic.replay.rows["primitive"][0], [1, 2])
 
 
-def test_rejects_maps_without_two_agents():
-    env = envs.make(envs.load_layout("two_rooms").subset(agents=[1]))
-    with pytest.raises(ValueError, match="2 agents"):
-        oc.make_learner(env, SMALL)
+def test_any_number_of_agents():
+    """One medic or three: K^N critic outputs, one actor per medic, a joint index per replay row."""
+    for env, n in ((envs.make(envs.load_layout("two_rooms").subset(agents=[1])), 1), (envs.make("four_rooms"), 3)):
+        learner = oc.make_learner(env, SMALL, options=2)
+        state = learner.init(jax.random.PRNGKey(0), example_transition(learner, env))
+        obs, _ = env.reset(jax.random.PRNGKey(1))
+        noise = {name: jnp.full(shape, 0.5) for name, shape in learner.act_noise.items()}
+        actions, options = learner.act(state, obs, learner.init_carry(), noise, 0)
+        assert actions.shape == (n,) and options.shape == (n,)
+        assert learner.q_joint(state.critic.params, obs).shape == (2,) * n
+        assert learner.actor_out(state.actor, obs)[0].shape == (n, 2, envs.N_ACTIONS)
+        w = jnp.array([[1] * n, [0] * n])
+        np.testing.assert_array_equal(learner.split(learner.joint(w)), w)
+        assert int(learner.joint(w)[0]) == 2 ** n - 1
+
+
+def test_option_critic_target_for_three_agents_sums_over_who_re_chooses():
+    """U for N = 3 against a brute-force sum over the 8 sets of agents whose options end."""
+    import itertools
+
+    rng = np.random.default_rng(0)
+    b, k = 5, 3
+    q = rng.normal(size=(b, k, k, k)).astype(np.float32)
+    beta = rng.uniform(size=(b, 3)).astype(np.float32)
+    w = rng.integers(0, k, size=(b, 3))
+    want = []
+    for j in range(b):
+        u = 0.0
+        for ends in itertools.product([False, True], repeat=3):
+            p = np.prod([beta[j, i] if e else 1 - beta[j, i] for i, e in enumerate(ends)])
+            choices = itertools.product(*[range(k) if e else [w[j, i]] for i, e in enumerate(ends)])
+            u += p * max(q[j][c] for c in choices)
+        want.append(1.0 + 0.9 * u)
+    got = oc.option_critic_target(jnp.ones(b), jnp.full(b, 0.9), jnp.asarray(q), jnp.asarray(beta), jnp.asarray(w))
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    adv = oc.termination_advantage(jnp.asarray(q), jnp.asarray(w))
+    j = 0
+    np.testing.assert_allclose(adv[j], [q[j][tuple(w[j])] - q[j][:, w[j, 1], w[j, 2]].max(),
+                                        q[j][tuple(w[j])] - q[j][w[j, 0], :, w[j, 2]].max(),
+                                        q[j][tuple(w[j])] - q[j][w[j, 0], w[j, 1], :].max()], rtol=1e-5)
 
 
 # -- the critic target ------------------------------------------------------------------------------------
@@ -181,6 +218,12 @@ def test_choose_options_follows_the_critic():
     assert choose([True, False]) == [1, 2]   # agent 1: argmax over column 2 (agent 2's option fixed)
     assert choose([False, True]) == [0, 1]   # agent 2: argmax over row 0
     assert choose([True, True]) == [2, 0]    # both: the joint argmax
+    # three agents: those whose options end re-choose jointly, the other held
+    learner3 = oc.make_learner(envs.make("four_rooms"), SMALL, options=2)
+    q3 = jnp.arange(8.0).reshape(2, 2, 2).at[0, 1, 1].set(9.0).at[1, 0, 0].set(10.0)
+    got = learner3.choose_options(q3, jnp.array([1, 1, 0]), jnp.array([True, False, True]), 0.0,
+                                  jnp.full(3, 0.5), jnp.zeros(3))
+    assert np.asarray(got).tolist() == [0, 1, 1]  # argmax over q3[:, 1, :]: 9 at (0, 1, 1)
     # exploring: uniform picks, only for the agents whose options ended
     assert choose([True, False], eps=1.0, up=(0.4, 0.1)) == [1, 2]
     assert choose([False, True], eps=1.0, up=(0.4, 0.1)) == [0, 0]

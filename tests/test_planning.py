@@ -315,3 +315,14 @@ def test_lower_bound_runs_where_the_joint_search_cannot():
     env = envs.make("office")  # 4 medics, 6 victims: up to 1.6e15 joint states
     assert planning.joint_states_bound(env) > 1e15
     assert planning.team_lower_bound(env) > 0
+
+
+def test_team_reference_is_the_optimum_where_the_search_runs_else_the_lower_bound():
+    from jaxusar.experiments.train import reference_metrics
+
+    assert planning.team_reference(envs.make("two_rooms")) == {"steps": 18, "reference": "optimum", "lower_bound": 18}
+    ref = planning.team_reference(envs.make("four_rooms"))  # 3.2e9 joint states: past the search's limit
+    assert ref == {"steps": 25, "reference": "lower bound", "lower_bound": 25}
+    # the optimality gap: a trial's shortest solving test over the bound; None where nothing was solved
+    got = reference_metrics(ref, {"episodes_to_solved": [40, None, 7], "best_length": np.array([30, 300, 25])})
+    assert got["optimality_gap"] == [1.2, None, 1.0] and got["team_lower_bound"] == 25

@@ -248,6 +248,9 @@ def test_trials_split_over_two_processes_equal_one_process(reference, tmp_path):
     (["--trials", "3", "--distributed", "--num-processes", "2", "--process-id", "0",
       "--coordinator", "127.0.0.1:1"], "cannot be split evenly over 2 processes"),
     (["--process-id", "0"], "--distributed"),
+    (["--map", "nowhere"], "nowhere"),
+    (["--map", "office", "--set", "hierarchical.hierarchical.coordinator.kind=flat"], "50,625 joint options"),
+    (["--map", "four_rooms", "--set", "iql.env.map=two_rooms"], "same map"),
 ])
 def test_reproduce_bad_input_is_one_line_before_compiling(argv, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
@@ -262,8 +265,24 @@ def test_table2_marks_what_never_reached_optimal():
                     "iqm_ci95": [900.0, None], "fraction_optimal": 0.5, "budget_episodes": 5000}}
     text = reproduce.table2({"algorithms": rows, "map": "two_rooms", "optimal_team_steps": 18, "trials": 2,
                              "command": "jaxusar reproduce --trials 2"})
-    assert "| Independent Q-learning | > 5,000 | 900 | 1/2 | > 5,000 | > 5,000 [900, > 5,000] | 5,000 | - | - |" in text
-    rows["iql"].update(episodes_to_solved=[700, 800], best_test_steps=[25, 18])
+    assert "| Independent Q-learning | > 5,000 | 900 | 1/2 | > 5,000 | > 5,000 [900, > 5,000] | 5,000 | - | - | - |" \
+        in text
+    rows["iql"].update(episodes_to_solved=[700, 800], best_test_steps=[25, 18], optimality_gap=[25 / 18, 1.0])
     text = reproduce.table2({"algorithms": rows, "map": "two_rooms", "optimal_team_steps": 18, "trials": 2,
                              "command": "jaxusar reproduce --trials 2"})
-    assert "| 5,000 | 2/2 | 18 |" in text
+    assert "| 5,000 | 2/2 | 18 | 1.19 (1.00) |" in text
+    # another map: no paper column, and the reference is the lower bound where the exact optimum is out of reach
+    text = reproduce.table2({"algorithms": rows, "map": "office", "optimal_team_steps": 42, "trials": 2,
+                             "reference": "lower bound", "team_lower_bound": 42,
+                             "command": "jaxusar reproduce --map office"})
+    assert "(office, lower bound 42 team steps)" in text and "| Independent Q-learning | - | 900 |" in text
+
+
+def test_reproduce_results_go_to_a_folder_named_after_the_map():
+    assert reproduce.default_out(None) == Path("results/two_rooms")
+    assert reproduce.default_out("office") == Path("results/office")
+    assert reproduce.default_out("/tmp/maps/my_ward.txt") == Path("results/my_ward")
+    cfgs = reproduce.configs(quick=True, map="four_rooms")
+    assert {c.env.map for c in cfgs.values()} == {"four_rooms"}
+    assert cfgs["hierarchical"].hierarchical.coordinator.kind == "factored"  # four_rooms' settings file
+    assert cfgs["hierarchical"].train.episodes == 150  # --quick still applies

@@ -1,7 +1,11 @@
 """The coordinator: SMDP Q-learning over joint options on the graph view (paper Sec. IV-C).
 
 The coordinator sees the abstract state (each agent's region one-hot, the triaged flags) and picks a
-joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). The agents run their trained
+joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). ``coordinator.kind: flat`` (the
+paper) has one Q-value per joint option, options ^ medics of them (refused past ``max_joint_options``:
+office would need 15^4 = 50,625); ``factored`` has one option head per medic, their values summed
+(``core.learners.FactoredDQN``, value decomposition), each medic's choice masked to the options it may
+start, so its parameters and compute grow linearly in the medics; both learn from the same SMDP target. The agents run their trained
 sub-policies greedily in the real team env until the first agent's option terminates (or the episode
 ends); then all options terminate and the coordinator decides again: one SMDP transition of k steps.
 
@@ -19,9 +23,10 @@ Decisions left open by the paper, made here:
 * Exploration: random picks are drawn among the valid joint options only; the greedy choice ranges over
   all of them, so the greedy policy must learn validity from the penalty, as in the paper. (Random
   picks over all 16 made a decision sequence mostly of invalid choices that ate the epsilon schedule.)
-  The SMDP target maximises over the joint options valid at the next decision.
-* Options also terminate after ``option_timeout`` primitive steps (default 50, well above any optimal
-  sub-task path on the two-rooms map): an imperfect sub-policy can loop from a state it rarely saw,
+  The SMDP target maximises over the joint options valid at the next decision. (The factored
+  coordinator masks its greedy choice too: each medic's head only ranks that medic's valid options.)
+* Options also terminate after ``option_timeout`` primitive steps (default: 1.5x the longest optimal
+  option path on the map, at least 50: 50 on two_rooms, well above any optimal sub-task path there): an imperfect sub-policy can loop from a state it rarely saw,
   and without a timeout one such loop ate the rest of the episode (measured: most of 300 steps).
 * Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
   sum_i gamma^i r_{t+i} and its own discount gamma^k, so the shared target r + discount * max_valid Q is
@@ -39,7 +44,7 @@ from flax import struct
 
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
-from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
+from jaxusar.core.learners import FactoredDQN, IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
 
 ALGORITHM = "hierarchical"  # `jaxusar train hierarchical`: sub-policies, then the coordinator
@@ -73,25 +78,36 @@ class CoordinatorParams:
 class MacroEnv:
     """The team env seen by the coordinator: one ``step`` = one joint option run to termination.
 
-    ``policy_for`` int[n_agents, O]: which sub-policy task executes option o for agent i (-1: none).
-    ``subpolicy_act(params, obs) -> action[1]`` runs one sub-policy greedily; ``observe(pos, dir, flag)``
-    builds its input.
+    ``policy_for`` int[n_agents, R, O] (or [n_agents, O], the same in every region): which sub-policy
+    task executes option o for agent i while it is in region q (-1: none); chained navigation changes
+    task as the agent crosses regions. ``subpolicy_act(params, obs) -> action[1]`` runs one sub-policy
+    greedily; ``observe(pos, dir, flag)`` builds its input. ``factored``: the action is the options
+    themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
     """
 
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
-                 gamma: float, invalid_penalty: float, option_timeout: int = 50):
+                 gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False):
         self.env, self.options = env, options
-        self.policy_for = np.asarray(policy_for, np.int32)
+        self.n_agents, self.horizon = env.n_agents, env.horizon
+        self.n_regions = env.graph.n_regions
+        policy_for = np.asarray(policy_for, np.int32)
+        if policy_for.ndim == 2:
+            policy_for = np.repeat(policy_for[:, None], self.n_regions, 1)
+        self.policy_for = policy_for
         self.subpolicy_act, self.observe_agent = subpolicy_act, observe
         self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
         self.option_timeout = int(option_timeout)
-        self.n_agents, self.horizon = env.n_agents, env.horizon
-        self.n_regions = env.graph.n_regions
+        self.factored = factored
         self.n_joint = options.n ** env.n_agents
         self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims  # one-hot widths
         self.obs_dim = sum(self.obs_blocks)
-        # joint option index -> per-agent options (agent 0 most significant)
-        self.joint = np.array(list(itertools.product(range(options.n), repeat=env.n_agents)), np.int32)
+        # joint option index -> per-agent options (agent 0 most significant); the factored one never builds it
+        self.joint = None if factored else \
+            np.array(list(itertools.product(range(options.n), repeat=env.n_agents)), np.int32)
+
+    def options_of(self, action: jax.Array) -> jax.Array:
+        """int32[n_agents]: each agent's option in the coordinator's ``action``."""
+        return action if self.factored else jnp.asarray(self.joint)[action[0]]
 
     # -- abstract state --------------------------------------------------------------------------
     def observe(self, s: EnvState) -> jax.Array:
@@ -105,13 +121,17 @@ class MacroEnv:
     def available(self, regions: jax.Array, triaged: jax.Array) -> jax.Array:
         """bool[n_agents, O]: options each agent may start (initiation set met and a sub-policy exists)."""
         can = jax.vmap(self.options.can_initiate, in_axes=(0, None))(regions, triaged)
-        return can & (jnp.asarray(self.policy_for) >= 0)
+        return can & (jnp.asarray(self.policy_for)[jnp.arange(self.n_agents), regions] >= 0)
+
+    def valid_options(self, obs: jax.Array) -> jax.Array:
+        """bool[n_agents, O]: each agent's valid part of a joint option: an available option, or any
+        option for an idle agent (one with none available; its part is ignored)."""
+        avail = self.available(*self.decode(obs))
+        return avail | ~avail.any(-1, keepdims=True)
 
     def valid_joint(self, obs: jax.Array) -> jax.Array:
-        """bool[n_joint]: joint options whose every non-idle agent's part is available."""
-        avail = self.available(*self.decode(obs))
-        idle = ~avail.any(-1)
-        ok = avail[jnp.arange(self.n_agents), jnp.asarray(self.joint)] | idle  # [n_joint, n_agents]
+        """bool[n_joint]: joint options whose every agent's part is valid (flat coordinator only)."""
+        ok = self.valid_options(obs)[jnp.arange(self.n_agents), jnp.asarray(self.joint)]  # [n_joint, n_agents]
         return ok.all(-1)
 
     # -- dynamics ----------------------------------------------------------------------------------
@@ -122,9 +142,10 @@ class MacroEnv:
     def primitive_actions(self, s: EnvState, options: jax.Array, active: jax.Array, p: CoordinatorParams):
         """int32[n_agents]: each active agent's sub-policy action for its option; TRIAGE for idle ones."""
         acts = []
+        regions = self.env.graph.region_of(s.agent_pos)
         for i in range(self.n_agents):
             o = options[i]
-            task = jnp.asarray(self.policy_for)[i, o]
+            task = jnp.asarray(self.policy_for)[i, regions[i], o]
             params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
             victim = jnp.asarray(self.options.victim)[o]
             flag = jnp.where(victim >= 0, s.triaged[jnp.maximum(victim, 0)], False)
@@ -139,11 +160,10 @@ class MacroEnv:
         return jnp.any(active & done)
 
     def step(self, key, s: EnvState, action: jax.Array, p: CoordinatorParams):
-        options = jnp.asarray(self.joint)[action[0]]
+        options = self.options_of(action)
         obs = self.observe(s)
-        avail = self.available(*self.decode(obs))
-        active = avail.any(-1)  # non-idle agents
-        valid = self.valid_joint(obs)[action[0]]
+        active = self.available(*self.decode(obs)).any(-1)  # non-idle agents
+        valid = self.valid_options(obs)[jnp.arange(self.n_agents), options].all()
 
         def body(c):
             st, ret, disc, k, done = c
@@ -175,8 +195,10 @@ def coordinator_dqn(cfg: CoordinatorConfig) -> DQNConfig:
                      eps_decay_steps=cfg.eps_decay_steps, double_dqn=False)
 
 
-def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
-    """A single DQN over joint options with the SMDP target (Sutton et al. 1999, eq. 8)."""
+def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN | FactoredDQN:
+    """``cfg.kind``: ``flat`` (the paper): a single DQN over the joint options; ``factored``: one option
+    head per medic, their values summed (``FactoredDQN``), each medic's choice masked to its valid
+    options. Both learn from the SMDP target (Sutton et al. 1999, eq. 8)."""
 
     def row(transition):
         info = transition["info"]
@@ -185,5 +207,8 @@ def make_learner(macro: MacroEnv, cfg: CoordinatorConfig) -> IndependentDQN:
                 "terminal": row["terminal"] | ~info["valid"]}  # an invalid choice is a dead end
 
     dqn = coordinator_dqn(cfg)
+    if cfg.kind == "factored":
+        return FactoredDQN(macro.obs_dim, macro.options.n, macro.n_agents, dqn, macro.valid_options, row_fn=row,
+                           obs_blocks=macro.obs_blocks)
     return IndependentDQN(macro.obs_dim, macro.n_joint, 1, dqn, dqn_target(dqn, macro.valid_joint), row_fn=row,
                           valid_fn=macro.valid_joint, mask_greedy=False, obs_blocks=macro.obs_blocks)

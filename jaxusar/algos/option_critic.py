@@ -6,16 +6,17 @@ termination gradient, U); Chakravorty et al. 2019, "Option-Critic in Cooperative
 details beyond "centralized critic" and K in {2, 4, 8}; every choice below is ours, each a config value
 in ``doc:`` (``jaxusar.config.DOCConfig``) where the sources differ.
 
-Per agent i in {1, 2}: K intra-option policies pi_i(a | s, w_i) (softmax over the 4 primitive actions)
+Per agent i (two on the paper's map, any number N elsewhere): K intra-option policies pi_i(a | s, w_i) (softmax over the 4 primitive actions)
 and K terminations beta_i(s, w_i) (sigmoid), one small MLP per agent with a policy head (K x 4 logits)
 and a termination head (K logits) on a shared trunk (``doc.actor_hidden``), its own Adam
 (``doc.actor_lr``). Both agents see the full observation (the task is fully observable).
 
-**Critic.** Q(s, w1, w2), one MLP with K^2 outputs (joint option index w = w1 * K + w2), trained by the
+**Critic.** Q(s, w1, w2), one MLP with K^2 outputs (joint option index w = w1 * K + w2; K^N for N
+agents, agent 1 most significant), trained by the
 shared ``core.qlearning.DQN`` (replay, target network, Huber loss, Adam; ``dqn:`` section) from
 replay rows (obs, joint option w, primitive actions, reward, next_obs, terminal). Its target is the
-option-critic U generalised to two agents whose options end independently, with b_i = beta_i(s', w_i)
-from the current actor and Q' the target network::
+option-critic U generalised to agents whose options end independently, with b_i = beta_i(s', w_i)
+from the current actor and Q' the target network; for two agents::
 
     y = r + gamma (1 - terminal) U(s', w)
     U(s', w) = (1-b1)(1-b2) Q'(s', w1, w2)            neither option ends
@@ -23,15 +24,19 @@ from the current actor and Q' the target network::
              + (1-b1)    b2 max_v Q'(s', w1, v)       agent 2 re-chooses, agent 1's option fixed
              +    b1    b2  max_{v1,v2} Q'(s', v1, v2) both re-choose, jointly
 
-(with ``dqn.double_dqn`` the maxima are taken at the online network's argmax). Time-limit cuts
+and for N agents the sum over the 2^N sets of agents that re-choose, each max over their options with
+the others' held (``option_critic_target``; with ``dqn.double_dqn`` the maxima are taken at the
+online network's argmax). Time-limit cuts
 bootstrap (only "all victims triaged" is terminal), as in IQL.
 
 **Options.** An option in force at s_{t-1} ends at s_t with probability beta_i(s_t, w_i) (checked at
 the start of ``act``, so the option used for the transition (s_t, a_t, s_{t+1}) is the one stored
 in its replay row). A new option is chosen epsilon-greedily from the critic by the rule U assumes: one
 agent's option ends -> argmax over its options with the other agent's option fixed; both end (and at
-an episode's first step, where the carry holds NO_OPTION) -> the joint argmax. Epsilon follows the
-``dqn.eps_*`` schedule; an exploring choice is uniform over the agent's K options (over K^2 jointly).
+an episode's first step, where the carry holds NO_OPTION) -> the joint argmax (for N agents: the agents
+whose options end re-choose jointly, the others' held). Epsilon follows the ``dqn.eps_*`` schedule
+(the first re-choosing agent's draw decides); an exploring choice is uniform over each re-choosing
+agent's K options.
 Options change only at a termination.
 
 **Actor losses** (per agent, summed; every critic value detached)::
@@ -68,11 +73,12 @@ advantage (+ xi) is positive and raises it where negative. Choices (config value
 **Greedy test** (paper Fig. 5b, "greedy-Q"): options by the argmax rules above with no exploration,
 each intra-option policy's most likely action, and an option ends where beta >= ``doc.greedy_termination``.
 
-Two agents only (the critic is over joint options of two medics); ``make_learner`` rejects other maps.
+The critic has K^N outputs: 4,096 for 8 options and 4 medics, so this baseline stays a flat critic.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Sequence
 
@@ -80,6 +86,7 @@ import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -90,7 +97,6 @@ from jaxusar.envs import N_ACTIONS, USAREnv
 
 ALGORITHM = "doc"  # `jaxusar train doc`: one run per number of options (doc.options)
 EXPERIMENT = "jaxusar.experiments.doc"
-N_AGENTS = 2
 NO_OPTION = -1
 
 # The paper's run (Sec. V, Fig. 5): 5000 training episodes, a greedy test every 50, horizon 300
@@ -111,41 +117,49 @@ def _best(q_value: jax.Array, q_select: jax.Array) -> jax.Array:
     return jnp.take_along_axis(q_value, a[..., None], axis=-1)[..., 0]
 
 
+def _others_fixed(q: jax.Array, w: jax.Array, free: tuple[int, ...]) -> jax.Array:
+    """Q(s, .) with every agent not in ``free`` held at its option in w: float[B, K^len(free)].
+
+    q float[B, K, ..., K] (one axis per agent); w int[B, N]; free: agents whose option varies (static).
+    """
+    index = (jnp.arange(q.shape[0]),) + tuple(slice(None) if i in free else w[:, i] for i in range(w.shape[1]))
+    return q[index].reshape(q.shape[0], -1)  # the batch axis first (NumPy's rule), then the free agents'
+
+
 def option_critic_target(r_t: jax.Array, discount_t: jax.Array, q_t: jax.Array, beta_t: jax.Array,
                          w_tm1: jax.Array, q_t_selector: jax.Array | None = None) -> jax.Array:
-    """y = r_t + discount_t U(s_t, w_tm1) for two agents (Bacon et al. 2017 eq. for U, generalised).
+    """y = r_t + discount_t U(s_t, w_tm1) for N agents (Bacon et al. 2017 eq. for U, generalised).
 
-    r_t float[B]; discount_t float[B] (gamma, 0 at a terminal s_t); q_t float[B, K, K] Q(s_t, w1, w2)
-    from the target network; beta_t float[B, 2] beta_i(s_t, w_tm1[i]); w_tm1 int[B, 2] the options in
-    force for the transition; q_t_selector optional float[B, K, K] choosing the maxima (Double DQN).
+    U sums over every set T of agents whose options end (2^N terms): the probability
+    prod_{i in T} b_i prod_{i not in T} (1 - b_i) times max over T's options, the others' held.
+    r_t float[B]; discount_t float[B] (gamma, 0 at a terminal s_t); q_t float[B, K, ..., K] Q(s_t, w)
+    from the target network; beta_t float[B, N] beta_i(s_t, w_tm1[i]); w_tm1 int[B, N] the options in
+    force for the transition; q_t_selector optional, shaped as q_t, choosing the maxima (Double DQN).
     """
-    chex.assert_rank([r_t, discount_t, q_t, beta_t, w_tm1], [1, 1, 3, 2, 2])
+    n = w_tm1.shape[1]
+    chex.assert_rank([r_t, discount_t, beta_t, w_tm1], [1, 1, 2, 2])
+    chex.assert_rank(q_t, n + 1)
     sel = q_t if q_t_selector is None else q_t_selector
-    b = jnp.arange(q_t.shape[0])
-    w1, w2 = w_tm1[:, 0], w_tm1[:, 1]
-    stay = q_t[b, w1, w2]
-    switch_1 = _best(q_t[b, :, w2], sel[b, :, w2])      # agent 1 re-chooses, w2 fixed
-    switch_2 = _best(q_t[b, w1, :], sel[b, w1, :])      # agent 2 re-chooses, w1 fixed
-    switch_both = _best(q_t.reshape(len(b), -1), sel.reshape(len(b), -1))
-    b1, b2 = beta_t[:, 0], beta_t[:, 1]
-    u = ((1 - b1) * (1 - b2) * stay + b1 * (1 - b2) * switch_1 + (1 - b1) * b2 * switch_2
-         + b1 * b2 * switch_both)
+    u = 0.0
+    for ends in range(2 ** n):  # bit i: agent i's option ends
+        free = tuple(i for i in range(n) if ends >> i & 1)
+        weight = 1.0
+        for i in range(n):
+            weight = weight * (beta_t[:, i] if i in free else 1 - beta_t[:, i])
+        u = u + weight * _best(_others_fixed(q_t, w_tm1, free), _others_fixed(sel, w_tm1, free))
     return r_t + discount_t * u
 
 
 def termination_advantage(q: jax.Array, w: jax.Array, baseline: str = "max") -> jax.Array:
-    """A_i(s, w) = Q(s, w1, w2) - V_i(s), V_i over agent i's options with the other's fixed.
+    """A_i(s, w) = Q(s, w) - V_i(s), V_i over agent i's options with the others' fixed.
 
-    q float[B, K, K]; w int[B, 2]; baseline "max" or "mean". Returns float[B, 2].
+    q float[B, K, ..., K]; w int[B, N]; baseline "max" or "mean". Returns float[B, N].
     """
-    chex.assert_rank([q, w], [3, 2])
-    b = jnp.arange(q.shape[0])
-    w1, w2 = w[:, 0], w[:, 1]
+    n = w.shape[1]
+    chex.assert_rank([q, w], [n + 1, 2])
     reduce = jnp.max if baseline == "max" else jnp.mean
-    stay = q[b, w1, w2]
-    v_1 = reduce(q[b, :, w2], axis=-1)
-    v_2 = reduce(q[b, w1, :], axis=-1)
-    return jnp.stack([stay - v_1, stay - v_2], axis=-1)
+    stay = _others_fixed(q, w, ())[:, 0]
+    return jnp.stack([stay - reduce(_others_fixed(q, w, (i,)), axis=-1) for i in range(n)], axis=-1)
 
 
 def termination_loss(beta: jax.Array, advantage: jax.Array, xi: float, mask: jax.Array) -> jax.Array:
@@ -207,7 +221,7 @@ class OptionActor(nn.Module):
 
 @struct.dataclass
 class DOCState:
-    critic: DQNState    # centralized Q(s, w1, w2): params, target, optimizer, replay
+    critic: DQNState    # centralized Q(s, w1, ..., wN): params, target, optimizer, replay
     actor: object       # per-agent OptionActor params, leading [n_agents] axis
     actor_opt: object
 
@@ -221,97 +235,100 @@ class OptionCritic:
     """The learner (protocol in ``jaxusar.core.learners``), for ``n_options`` = K options per agent."""
 
     def __init__(self, obs_dim: int, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig,
-                 obs_blocks: tuple[int, ...] | None = None):
+                 obs_blocks: tuple[int, ...] | None = None, n_agents: int = 2):
         self.obs_dim, self.n_actions, self.n_options = obs_dim, n_actions, int(n_options)
+        self.n_agents = n = int(n_agents)
         self.cfg, self.doc = cfg, doc
         if cfg.n_step != 1:
             raise ConfigError(f"dqn.n_step={cfg.n_step}: option-critic's U target is one-step (the options in "
                               "force may change at every step); use dqn.n_step=1")
-        self.critic = DQN(obs_dim, self.n_options ** 2, cfg, _critic_needs_actor, obs_blocks)
+        self.critic = DQN(obs_dim, self.n_options ** n, cfg, _critic_needs_actor, obs_blocks)
+        # joint index -> options, agent 0 most significant
+        self.coords = np.array(list(itertools.product(range(self.n_options), repeat=n)), np.int32)
         self.actor_net = OptionActor(tuple(doc.actor_hidden), self.n_options, n_actions)
         self.actor_optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(doc.actor_lr))
-        self.action_shape = (N_AGENTS,)
-        self.act_noise = {"terminate": (N_AGENTS,), "option_explore": (N_AGENTS,),
-                          "option_pick": (N_AGENTS,), "action": (N_AGENTS,)}
+        self.action_shape = (n,)
+        self.act_noise = {"terminate": (n,), "option_explore": (n,), "option_pick": (n,), "action": (n,)}
         self.update_noise = {"sample": (cfg.batch_size,)}
 
     # -- pieces ------------------------------------------------------------------------------------
     def joint(self, options: jax.Array) -> jax.Array:
-        """int[..., 2] options -> the critic's joint index w1 * K + w2."""
-        return (options[..., 0] * self.n_options + options[..., 1]).astype(jnp.int32)
+        """int[..., N] options -> the critic's joint index (w1 * K + w2 for two agents)."""
+        index = options[..., 0]
+        for i in range(1, self.n_agents):
+            index = index * self.n_options + options[..., i]
+        return index.astype(jnp.int32)
 
     def split(self, w: jax.Array) -> jax.Array:
-        """The critic's joint index -> int[..., 2] options."""
-        return jnp.stack([w // self.n_options, w % self.n_options], axis=-1).astype(jnp.int32)
+        """The critic's joint index -> int[..., N] options."""
+        return jnp.asarray(self.coords)[w]
 
     def actor_out(self, actor_params, obs: jax.Array):
-        """(policy logits [2, ..., K, A], termination probabilities [2, ..., K]) for obs [..., D]."""
+        """(policy logits [N, ..., K, A], termination probabilities [N, ..., K]) for obs [..., D]."""
         apply = lambda p: self.actor_net.apply(p, obs.astype(jnp.float32))
         logits, beta_logits = jax.vmap(apply)(actor_params)
         return logits, jax.nn.sigmoid(beta_logits)
 
     def terminations(self, actor_params, obs: jax.Array) -> jax.Array:
-        """beta_i(s, .) as float[2, ..., K] for obs [..., D]."""
+        """beta_i(s, .) as float[N, ..., K] for obs [..., D]."""
         apply = lambda p: self.actor_net.apply(p, obs.astype(jnp.float32), method=OptionActor.terminations)
         return jax.nn.sigmoid(jax.vmap(apply)(actor_params))
 
     def q_joint(self, critic_params, obs: jax.Array) -> jax.Array:
-        """Q(s, w1, w2) as float[..., K, K]."""
+        """Q(s, w1, ..., wN) as float[..., K, ..., K]."""
         q = self.critic.q_values(critic_params, obs)
-        return q.reshape(*q.shape[:-1], self.n_options, self.n_options)
+        return q.reshape(*q.shape[:-1], *(self.n_options,) * self.n_agents)
 
     def choose_options(self, q: jax.Array, w: jax.Array, terminate: jax.Array, eps, u_explore: jax.Array,
                        u_pick: jax.Array) -> jax.Array:
-        """New options int32[2] after terminations bool[2] (module docstring: the rule U assumes).
+        """New options int32[N] after terminations bool[N] (module docstring: the rule U assumes): the
+        agents whose options end re-choose jointly, the argmax of Q with the others' options held, or,
+        exploring (decided by the first of them), uniformly at random.
 
-        q float[K, K] Q(s, ., .); w int32[2] options in force (>= 0); u_explore, u_pick float[2].
+        q float[K, ..., K] Q(s, .); w int32[N] options in force (>= 0); u_explore, u_pick float[N].
         """
         k = self.n_options
         rand = jnp.minimum(jnp.floor(u_pick * k), k - 1).astype(jnp.int32)
-        explore = u_explore < eps
-        own_1 = jnp.where(explore[0], rand[0], jnp.argmax(q[:, w[1]]))
-        own_2 = jnp.where(explore[1], rand[1], jnp.argmax(q[w[0], :]))
-        greedy_joint = jnp.argmax(q.ravel())
-        joint = jnp.where(explore[0], rand, jnp.stack([greedy_joint // k, greedy_joint % k]))
-        both = terminate[0] & terminate[1]
-        new_1 = jnp.where(both, joint[0], jnp.where(terminate[0], own_1, w[0]))
-        new_2 = jnp.where(both, joint[1], jnp.where(terminate[1], own_2, w[1]))
-        return jnp.stack([new_1, new_2]).astype(jnp.int32)
+        coords = jnp.asarray(self.coords)
+        held = jnp.all((coords == w) | terminate, axis=-1)  # joint options that keep the others' options
+        greedy = coords[jnp.argmax(jnp.where(held, q.ravel(), -jnp.inf))]
+        explore = u_explore[jnp.argmax(terminate)] < eps
+        return jnp.where(terminate, jnp.where(explore, rand, greedy), w).astype(jnp.int32)
 
     def critic_target(self, actor_params):
         """The critic's ``target_fn`` for ``DQN.update``: U with the terminations of ``actor_params``."""
 
         def target(batch, q_t_target, q_t_online):
             w = self.split(batch["action"])
-            beta = self.terminations(actor_params, batch["next_obs"])         # [2, B, K]
+            beta = self.terminations(actor_params, batch["next_obs"])         # [N, B, K]
             return self._target(batch, w, beta, q_t_target, q_t_online)
 
         return target
 
     def _target(self, batch, w, beta_t, q_t_target, q_t_online):
         b = jnp.arange(w.shape[0])
-        beta_t_w = jnp.stack([beta_t[0, b, w[:, 0]], beta_t[1, b, w[:, 1]]], axis=-1)   # [B, 2]
+        beta_t_w = jnp.stack([beta_t[i, b, w[:, i]] for i in range(self.n_agents)], axis=-1)   # [B, N]
         discount_t = self.cfg.gamma * (1.0 - batch["terminal"].astype(jnp.float32))
-        k = self.n_options
-        q_t = q_t_target.reshape(-1, k, k)
-        sel = q_t_online.reshape(-1, k, k) if self.cfg.double_dqn else None
+        shape = (-1,) + (self.n_options,) * self.n_agents
+        q_t = q_t_target.reshape(shape)
+        sel = q_t_online.reshape(shape) if self.cfg.double_dqn else None
         return option_critic_target(batch["reward"], discount_t, q_t, jax.lax.stop_gradient(beta_t_w), w, sel)
 
     def actor_loss(self, actor_params, critic: DQNState, batch: dict) -> jax.Array:
-        """Both agents' intra-option policy and termination losses on ``batch`` (replay rows)."""
+        """Every agent's intra-option policy and termination losses on ``batch`` (replay rows)."""
         doc, b = self.doc, jnp.arange(batch["action"].shape[0])
         w = self.split(batch["action"])
         a = batch["primitive"]
         n = b.shape[0]
         both = jnp.concatenate([batch["obs"], batch["next_obs"]])            # one pass over s and s'
-        logits, beta_both = self.actor_out(actor_params, both)                 # [2, 2B, K, A], [2, 2B, K]
+        logits, beta_both = self.actor_out(actor_params, both)                 # [N, 2B, K, A], [N, 2B, K]
         logits_tm1, beta_tm1, beta_t = logits[:, :n], beta_both[:, :n], beta_both[:, n:]
         q_both = self.critic.q_values(critic.params, both)
-        q_tm1 = q_both[:n].reshape(n, self.n_options, self.n_options)
+        q_tm1 = q_both[:n].reshape((n,) + (self.n_options,) * self.n_agents)
         q_t_online = q_both[n:]
         q_t_target = self.critic.q_values(critic.target_params, batch["next_obs"])
         y = self._target(batch, w, beta_t, q_t_target, q_t_online)
-        advantage = jax.lax.stop_gradient(y - q_tm1[b, w[:, 0], w[:, 1]])
+        advantage = jax.lax.stop_gradient(y - _others_fixed(q_tm1, w, ())[:, 0])
         if doc.termination_at == "next":
             term_adv = termination_advantage(q_t_online.reshape(q_tm1.shape), w, doc.value_baseline)
             beta, mask = beta_t, 1.0 - batch["terminal"].astype(jnp.float32)
@@ -320,7 +337,7 @@ class OptionCritic:
             beta, mask = beta_tm1, jnp.ones(b.shape, jnp.float32)
         term_adv = jax.lax.stop_gradient(term_adv)
         loss = 0.0
-        for i in range(N_AGENTS):
+        for i in range(self.n_agents):
             loss += intra_option_pg_loss(logits_tm1[i, b, w[:, i]], a[:, i], advantage, doc.entropy_weight)
             loss += termination_loss(beta[i, b, w[:, i]], term_adv[:, i], doc.xi, mask)
         return loss
@@ -346,29 +363,29 @@ class OptionCritic:
         return DOCState(critic=critic, actor=actor, actor_opt=self.actor_optimizer.init(actor))
 
     def init_actor(self, key) -> object:
-        """Both agents' actor params from one uniform draw: LeCun-uniform kernels (variance 1 / fan_in,
+        """Every agent's actor params from one uniform draw: LeCun-uniform kernels (variance 1 / fan_in,
         as flax's default), zero biases. One draw instead of one per layer and agent: under the
         trainer's vmap, per-layer random inits cost seconds of XLA compile for nothing."""
         shapes = jax.eval_shape(self.actor_net.init, jax.random.PRNGKey(0), jnp.zeros((self.obs_dim,), jnp.float32))
         leaves, treedef = jax.tree.flatten(shapes)
         sizes = [math.prod(leaf.shape) for leaf in leaves]
-        u = jax.random.uniform(key, (N_AGENTS, sum(sizes)), jnp.float32, -1.0, 1.0)
+        u = jax.random.uniform(key, (self.n_agents, sum(sizes)), jnp.float32, -1.0, 1.0)
         params, offset = [], 0
         for leaf, size in zip(leaves, sizes):
-            x = u[:, offset:offset + size].reshape(N_AGENTS, *leaf.shape)
+            x = u[:, offset:offset + size].reshape(self.n_agents, *leaf.shape)
             offset += size
             params.append(x * math.sqrt(3.0 / leaf.shape[0]) if len(leaf.shape) == 2 else jnp.zeros_like(x))
         return jax.tree.unflatten(treedef, params)
 
     def init_carry(self) -> jax.Array:
-        return jnp.full((N_AGENTS,), NO_OPTION, jnp.int32)
+        return jnp.full((self.n_agents,), NO_OPTION, jnp.int32)
 
     def act(self, state: DOCState, obs, carry, noise, step):
         eps = linear_epsilon(self.cfg, step)
         q = self.q_joint(state.critic.params, obs)
-        logits, beta = self.actor_out(state.actor, obs)                        # [2, K, A], [2, K]
+        logits, beta = self.actor_out(state.actor, obs)                        # [N, K, A], [N, K]
         w = jnp.maximum(carry, 0)
-        agents = jnp.arange(N_AGENTS)
+        agents = jnp.arange(self.n_agents)
         terminate = (carry == NO_OPTION) | (noise["terminate"] < beta[agents, w])
         options = self.choose_options(q, w, terminate, eps, noise["option_explore"], noise["option_pick"])
         actions = sample_categorical(jax.nn.softmax(logits[agents, options]), noise["action"])
@@ -392,9 +409,9 @@ class OptionCritic:
         q = self.q_joint(params["critic"], obs)
         logits, beta = self.actor_out(params["actor"], obs)
         w = jnp.maximum(carry, 0)
-        agents = jnp.arange(N_AGENTS)
+        agents = jnp.arange(self.n_agents)
         terminate = (carry == NO_OPTION) | (beta[agents, w] >= self.doc.greedy_termination)
-        zeros = jnp.zeros((N_AGENTS,))
+        zeros = jnp.zeros((self.n_agents,))
         options = self.choose_options(q, w, terminate, 0.0, zeros, zeros)
         return jnp.argmax(logits[agents, options], axis=-1).astype(jnp.int32), options
 
@@ -407,7 +424,5 @@ def make_learner(env: USAREnv, cfg: DQNConfig, doc_cfg: DOCConfig | None = None,
     defaults with K = 2.
     """
     doc_cfg = doc_cfg or DOCConfig()
-    if env.n_agents != N_AGENTS:
-        raise ValueError(f"option-critic here is for {N_AGENTS} agents (joint options of two medics); "
-                         f"the map has {env.n_agents}")
-    return OptionCritic(env.obs_dim, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg, env.obs_blocks)
+    return OptionCritic(env.obs_dim, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg, env.obs_blocks,
+                        env.n_agents)

@@ -4,10 +4,15 @@ Each task is one option for one agent, in the map with the other agents and the 
 removed: +100 on reaching the sub-goal region (NAVIGATE) or on triaging the victim (TRIAGE), -1 every
 step, terminal there. Tasks:
 
-* NAVIGATE-TO-R for agent i (the paper trains "each medic to each room"), where i's start region is
-  adjacent to R (else that agent has no sub-policy for R: the paper's chained navigation is future
-  work, Sec. IV-B). Half of the training episodes start from agent i's start, half anywhere in the
-  option's initiation set (every open cell of the regions adjacent to R, any facing); greedy tests
+* ``hierarchical.navigation: chained`` (the default; the paper's "chaining options", its future work,
+  Sec. VI): NAVIGATE-TO-X for every region X that is a hop of some shortest region path to a room,
+  one task shared by all medics, trained and tested from anywhere in its initiation set (the regions
+  adjacent to X). The coordinator's NAVIGATE-TO-R then starts in any region and runs, region by
+  region, the task of the next hop (``policy_table``): at most one task per region, whatever the
+  number of medics (never medics x rooms^2).
+* ``adjacent`` (the paper, two_rooms' settings): NAVIGATE-TO-R for agent i (the paper trains "each
+  medic to each room"), where i's start region is adjacent to R. Half of the training episodes start
+  from agent i's start, half anywhere in the option's initiation set (every open cell of the regions adjacent to R, any facing); greedy tests
   start from agent i's start, which is what Fig. 4 measures. (Initiation-set starts alone: the exact
   path from the start was rarely practised; measured 7 of 8 trials short of optimal on one task.) Why not train from the start alone: the coordinator terminates every option when
   one completes, so navigation is often re-issued mid-way from hall states a start-only policy never
@@ -33,7 +38,7 @@ import numpy as np
 from flax import struct
 
 from jaxusar import planning
-from jaxusar.algos.options import NAVIGATE, Options
+from jaxusar.algos.options import NAVIGATE, Options, next_hop, room_label
 from jaxusar.config import ConfigError, DQNConfig
 from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, EnvState, USAREnv, apply_actions
@@ -44,11 +49,13 @@ SUCCESS_REWARD, STEP_REWARD = 100.0, -1.0
 @dataclasses.dataclass(frozen=True)
 class Task:
     name: str
-    option: int
+    option: int           # the coordinator's option it executes; -1: a hop of chained navigation only
     agent: int            # the agent whose start is used (NAVIGATE); -1 = any agent (TRIAGE)
     starts: np.ndarray    # int32[M, 3] (row, col, dir) training start states
     test_starts: np.ndarray  # int32[N, 3] greedy-test start states (the paper's single-start test)
     initiation: np.ndarray   # int32[K, 3] every state the coordinator may start or re-issue the option in
+    region: int           # the region to reach (NAVIGATE), -1 for TRIAGE
+    victim: int           # the victim to triage (TRIAGE), -1 for NAVIGATE
 
 
 @struct.dataclass
@@ -79,24 +86,49 @@ def _entry_cells(region: np.ndarray, r: int) -> list[tuple[int, int]]:
     return cells
 
 
-def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navigate_start: str = "mixed") -> list[Task]:
+def _navigation_task(env: USAREnv, name: str, goal: int, option: int, agent: int, navigate_start: str) -> Task:
+    """NAVIGATE to region ``goal`` from every open cell of the regions adjacent to it (victims' cells
+    aside), any facing; ``agent`` >= 0: training and tests use that medic's start (see the module doc)."""
+    graph, layout = env.graph, env.layout
+    victims = {tuple(v) for v in layout.victim_pos}
+    near = graph.adjacency[:, goal]
+    cells = np.argwhere(near[np.maximum(graph.cell_region, 0)] & (graph.cell_region >= 0))
+    initiation = np.array([[r, c, d] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+    if agent < 0:
+        return Task(name, option, agent, initiation, initiation, initiation, goal, -1)
+    start = np.array([[*layout.agent_start[agent], env.start_dir]], np.int32)
+    starts = initiation if navigate_start == "initiation" else \
+        np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
+    return Task(name, option, agent, starts, start, initiation, goal, -1)
+
+
+def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navigate_start: str = "mixed",
+               navigation: str = "adjacent") -> list[Task]:
     """The sub-tasks of ``options`` on ``env``. ``navigate_start``: where NAVIGATE training episodes
     start: ``mixed`` (half at the medic's start, half anywhere in the initiation set) or ``initiation``
-    (uniformly over the initiation set, which holds the medic's start)."""
+    (uniformly over the initiation set, which holds the medic's start).
+
+    ``navigation``: ``adjacent`` (the paper): a task per medic and room adjacent to the medic's start
+    region; ``chained``: one task per region that is a hop of some shortest region path to a room
+    (``options.next_hop``), shared by all medics, trained and tested from anywhere in its initiation
+    set; a NAVIGATE option chains them (``policy_table``). Their number is at most the regions'."""
     layout, graph = env.layout, env.graph
-    victims = {tuple(v) for v in layout.victim_pos}
     tasks = []
+    if navigation == "chained":
+        hop = next_hop(graph.adjacency)
+        goals = sorted({int(hop[q, r]) for r in graph.rooms for q in range(graph.n_regions) if hop[q, r] >= 0})
+        for g in goals:
+            o = next((o for o in range(options.n) if options.kind[o] == NAVIGATE and options.region[o] == g), -1)
+            name = options.names[o] if o >= 0 else f"NAVIGATE-TO-{room_label(graph.names[g])}"
+            tasks.append(_navigation_task(env, name, g, o, -1, navigate_start))
     for o in range(options.n):
         if options.kind[o] == NAVIGATE:
-            near = graph.adjacency[:, options.region[o]]
-            cells = np.argwhere(near[np.maximum(graph.cell_region, 0)] & (graph.cell_region >= 0))
-            initiation = np.array([[r, c, d] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+            if navigation == "chained":
+                continue
             for i, (r, c) in enumerate(layout.agent_start):
-                if near[graph.cell_region[r, c]]:
-                    start = np.array([[r, c, env.start_dir]], np.int32)
-                    starts = initiation if navigate_start == "initiation" else \
-                        np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
-                    tasks.append(Task(f"agent{i}:{options.names[o]}", o, i, starts, start, initiation))
+                if graph.adjacency[graph.cell_region[r, c], options.region[o]]:
+                    tasks.append(_navigation_task(env, f"agent{i}:{options.names[o]}", int(options.region[o]), o, i,
+                                                  navigate_start))
         else:
             room = options.region[o]
             victim_cell = tuple(layout.victim_pos[options.victim[o]])
@@ -105,12 +137,30 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
                 [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
             starts = np.array([[r, c, d] for r, c in cells for d in range(4)], np.int32)
             initiation = np.array([[r, c, d] for r, c in in_room for d in range(4)], np.int32)
-            tasks.append(Task(options.names[o], o, -1, starts, starts, initiation))
+            tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, int(options.victim[o])))
     return tasks
 
 
-def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: float,
-                task_gamma: dict[str, float]) -> TaskParams:
+def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: str = "adjacent") -> np.ndarray:
+    """int32[n_agents, R, O]: the task whose sub-policy agent i runs for option o while in region q (-1:
+    none). ``adjacent``: the agent's own task, wherever it is; ``chained``: NAVIGATE-TO-r runs the task
+    of the next region on the shortest region path from q to r."""
+    table = np.full((env.n_agents, env.graph.n_regions, options.n), -1, np.int32)
+    if navigation == "chained":
+        hop = next_hop(env.graph.adjacency)
+        task_to = {t.region: k for k, t in enumerate(tasks) if t.victim < 0}
+        for o in np.flatnonzero(options.kind == NAVIGATE):
+            for q in range(env.graph.n_regions):
+                if hop[q, options.region[o]] >= 0:
+                    table[:, q, o] = task_to[int(hop[q, options.region[o]])]
+    for k, t in enumerate(tasks):
+        if t.option >= 0 and (t.victim >= 0 or navigation == "adjacent"):
+            table[[t.agent] if t.agent >= 0 else slice(None), :, t.option] = k
+    return table
+
+
+def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
+               task_gamma: dict[str, float]) -> TaskParams:
     """Stacked TaskParams for ``tasks`` (numpy, leading task axis)."""
     unknown = sorted(set(task_gamma) - {t.name for t in tasks})
     if unknown:
@@ -124,11 +174,10 @@ def task_params(env: USAREnv, options: Options, tasks: list[Task], dqn_gamma: fl
     for t in tasks:
         victim_at = np.full(layout.shape, -1, np.int32)
         solid = layout.blocked.copy()
-        v = options.victim[t.option]
-        if v >= 0:
-            cell = tuple(layout.victim_pos[v])
+        if t.victim >= 0:
+            cell = tuple(layout.victim_pos[t.victim])
             victim_at[cell], solid[cell] = 0, True
-        goal = int(options.region[t.option]) if options.kind[t.option] == NAVIGATE else -1
+        goal = t.region
         dist = planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == goal) if goal >= 0 else None,
                                       triage=goal < 0)
         for k in ("test_starts", "initiation"):
@@ -238,3 +287,24 @@ def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
         return {**default_row(transition), "gamma": transition["info"]["gamma"]}
 
     return IndependentDQN(env.obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row, obs_blocks=env.obs_blocks)
+
+
+def exact_subpolicies(env: USAREnv, params: TaskParams):
+    """Exact sub-policies from the planner's distance tables: ``(act, tables)`` with ``tables``
+    int32[tasks, H, W, 4] a shortest-path action per state (TRIAGE where it finishes the task) and
+    ``act(table, obs) -> action[1]`` reading (row, col, facing) off a ``SubtaskEnv`` observation. In
+    ``MacroEnv``'s place of trained ones, they isolate the coordinator (tests, benchmarks/coordinators.py)."""
+    tables = []
+    for k in range(len(params.dist)):
+        nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
+                                                                                jnp.asarray(params.victim_at[k])))
+        after = params.dist[k][nxt[..., 0], nxt[..., 1], nxt[..., 2]]
+        reached = hit | ((params.goal_region[k] >= 0) & (after == 0))
+        tables.append(np.argmin(np.where(reached, -1, np.where(after < 0, 10_000, after)), -1).astype(np.int32))
+    h, w = env.height, env.width
+
+    def act(table, obs):
+        r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
+        return table[r, c, d].reshape(1)
+
+    return act, jnp.asarray(np.stack(tables))

@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxusar.config import DQNConfig
-from jaxusar.core.qlearning import DQN, double_q_learning_target, epsilon_greedy, linear_epsilon, q_learning_target
+from jaxusar.core.qlearning import (NEG_INF, DQN, double_q_learning_target, epsilon_greedy, linear_epsilon,
+                                    q_learning_target)
 
 
 class Learner(Protocol):
@@ -143,4 +144,67 @@ class IndependentDQN:
         q, valid = self._q(params, obs), self._valid(obs)
         if valid is not None and self.mask_greedy:
             q = jnp.where(valid, q, -jnp.inf)
+        return jnp.argmax(q, axis=-1).astype(jnp.int32), carry
+
+
+class FactoredDQN:
+    """One Q-network whose output is ``n`` heads of ``n_actions``, summed: Q(s, a) = sum_i Q_i(s, a_i)
+    (value decomposition, Sunehag et al. 2018), so parameters and compute grow linearly in ``n`` where
+    a flat head over joint actions grows as ``n_actions ** n``.
+
+    The action is int32[n], one per head; each head picks greedily (or explores) among its own valid
+    actions, ``valid_fn(obs) -> bool[n, n_actions]``, which the greedy choice always respects. The
+    target of a row is r + discount * sum_i max over head i's valid actions of Q_i^target(s', .): the
+    max of the sum over the valid joint actions, since validity factors per head. ``cfg.double_dqn``
+    is not supported.
+
+    Args as ``IndependentDQN``'s, with ``n`` the number of heads, which share one replay.
+    """
+
+    def __init__(self, obs_dim: int, n_actions: int, n: int, cfg: DQNConfig, valid_fn: Callable,
+                 row_fn: Callable = default_row, obs_blocks: tuple[int, ...] | None = None):
+        if cfg.double_dqn:
+            raise ValueError("FactoredDQN: double_dqn is not supported")
+        self.cfg, self.n, self.n_actions, self.obs_dim = cfg, n, n_actions, obs_dim
+        self.row_fn, self.valid_fn = row_fn, valid_fn
+        self.dqn = DQN(obs_dim, n * n_actions, cfg, self._target, obs_blocks, action_value=self._joint_value)
+        self.action_shape = (n,)
+        self.act_noise = {"explore": (n,), "action": (n,)}
+        self.update_noise = {"sample": (cfg.batch_size,)}
+
+    def _heads(self, q: jax.Array) -> jax.Array:
+        return q.reshape(*q.shape[:-1], self.n, self.n_actions)
+
+    def _joint_value(self, q: jax.Array, action: jax.Array) -> jax.Array:
+        """float[B]: sum_i Q_i(s, a_i) of q float[B, n * n_actions] at actions int[B, n]."""
+        return jnp.take_along_axis(self._heads(q), action[..., None].astype(jnp.int32), axis=-1)[..., 0].sum(-1)
+
+    def _target(self, batch, q_t_target, q_t_online):
+        valid_t = jax.vmap(self.valid_fn)(batch["next_obs"].astype(jnp.float32))
+        best = jnp.where(valid_t, self._heads(q_t_target), NEG_INF).max(-1).sum(-1)
+        return batch["reward"] + batch["discount"] * best
+
+    def init(self, key, transition: dict):
+        return self.dqn.init(key, self.row_fn(transition))
+
+    def init_carry(self):
+        return jnp.zeros((), jnp.int32)
+
+    def act(self, state, obs, carry, noise, step):
+        eps = linear_epsilon(self.cfg, step)
+        q, valid = self._heads(self.dqn.q_values(state.params, obs)), self.valid_fn(obs)
+        pick = lambda q_i, v_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, v_i)
+        return jax.vmap(pick)(q, valid, noise["explore"], noise["action"]), carry
+
+    def observe(self, state, transition):
+        return self.dqn.add(state, self.row_fn(transition))
+
+    def update(self, state, noise):
+        return self.dqn.update(state, noise["sample"])
+
+    def policy(self, state):
+        return state.params
+
+    def greedy_act(self, params, obs, carry):
+        q = jnp.where(self.valid_fn(obs), self._heads(self.dqn.q_values(params, obs)), -jnp.inf)
         return jnp.argmax(q, axis=-1).astype(jnp.int32), carry

@@ -102,6 +102,11 @@ def epsilon_greedy(q: jax.Array, eps: jax.Array, u_explore: jax.Array, u_action:
 TargetFn = Callable[[dict, jax.Array, jax.Array], jax.Array]
 
 
+def taken_value(q: jax.Array, action: jax.Array) -> jax.Array:
+    """q float[B, A] at the taken actions int[B]: the value the loss fits (``DQN(action_value=...)``)."""
+    return jnp.take_along_axis(q, action[:, None].astype(jnp.int32), axis=-1)[:, 0]
+
+
 def learning_rate(cfg: DQNConfig):
     """The Adam step size: ``cfg.lr``, constant or decayed to ``cfg.lr_end`` over ``cfg.lr_decay_updates``
     gradient updates (linearly or along a cosine), then flat."""
@@ -118,6 +123,8 @@ class DQN:
     ``target_fn(batch, q_t_target, q_t_online) -> target float[B]`` states the learner's target
     rule; ``batch`` holds the replay rows (``obs``, ``action`` and whatever the learner stored) with
     ``reward``, ``discount`` and ``next_obs`` as ``replay.sample_returns`` makes them (``cfg.n_step``).
+    ``action_value(q, action) -> float[B]`` is what the loss fits to the target: q at the taken action
+    by default; a factored learner sums its heads' values.
     A row needs ``reward``, ``terminal``, ``done`` and ``next_obs``; its ``gamma`` defaults to
     ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. The learning rate follows
     ``cfg.lr_schedule`` over gradient updates.
@@ -128,9 +135,10 @@ class DQN:
     """
 
     def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,
-                 obs_blocks: tuple[int, ...] | None = None):
+                 obs_blocks: tuple[int, ...] | None = None, action_value: Callable | None = None):
         self.cfg, self.obs_dim, self.n_actions = cfg, obs_dim, n_actions
         self.target_fn = target_fn
+        self.action_value = action_value or taken_value
         self.codec = None if obs_blocks is None else rb.OneHotCodec(obs_blocks)
         if self.codec is not None and self.codec.dim != obs_dim:
             raise ValueError(f"obs_blocks {self.codec.sizes} sum to {self.codec.dim}, not obs_dim={obs_dim}")
@@ -174,8 +182,7 @@ class DQN:
         q_t_target = self.q_values(target_params, batch["next_obs"])
         q_t_online = self.q_values(params, batch["next_obs"]) if self.cfg.double_dqn else q_t_target
         target = jax.lax.stop_gradient(target_fn(batch, q_t_target, q_t_online))
-        q_a = jnp.take_along_axis(q_tm1, batch["action"][:, None].astype(jnp.int32), axis=-1)[:, 0]
-        td = q_a - target
+        td = self.action_value(q_tm1, batch["action"]) - target
         per = optax.huber_loss(td) if self.cfg.loss == "huber" else 0.5 * td ** 2
         return per.mean()
 

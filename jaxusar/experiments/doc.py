@@ -42,7 +42,8 @@ class Experiment:
         self.ks = ks
         self.cfg = cfg = dataclasses.replace(cfg, doc=dataclasses.replace(cfg.doc, options=ks))  # what ran
         self.env = envs.make(cfg.env.map, **cfg.env.overrides())
-        self.optimal = planning.optimal_team_steps(self.env)
+        self.reference = planning.team_reference(self.env)
+        self.optimal = self.reference["steps"]
         self.chains = []
         for k in sorted(ks, reverse=True):  # the longest first
             learner = option_critic.make_learner(self.env, cfg.dqn, cfg.doc, options=k)
@@ -58,7 +59,7 @@ class Experiment:
             o = outcomes[f"doc/K{k}"]
             k_out = out / f"K{k}"
             k_out.mkdir(exist_ok=True)
-            per_k[k] = flat_metrics(cfg, o.results, self.optimal, o, options=k)
+            per_k[k] = flat_metrics(cfg, o.results, self.reference, o, options=k)
             write_trial_files(k_out, o.results)
             (k_out / "metrics.json").write_text(json.dumps(per_k[k], indent=2))
             if not quiet:
@@ -69,10 +70,11 @@ class Experiment:
         training_figure(series, out / "fig5_doc.png", f"simplified distributed option-critic on {cfg.env.map}",
                         horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env))
         keep = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal", "episodes_to_solved",
-                "best_test_return", "best_test_steps", "env_steps_per_trial", "seconds")
+                "best_test_return", "best_test_steps", "optimality_gap", "env_steps_per_trial", "seconds")
         return {
             "algorithm": cfg.algo, "trials": per_k[ks[0]]["trials"], "options": list(ks),
-            "optimal_team_steps": self.optimal, "optimal_slack": cfg.train.optimal_slack,
+            **{k: v for k, v in per_k[ks[0]].items() if k in ("optimal_team_steps", "reference", "team_lower_bound")},
+            "optimal_slack": cfg.train.optimal_slack,
             "per_options": {str(k): {key: per_k[k][key] for key in keep} for k in ks},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }

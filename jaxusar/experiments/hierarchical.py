@@ -29,20 +29,29 @@ from flax import serialization
 from jaxusar import envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import options_from_graph
-from jaxusar.config import ExperimentConfig, TrainConfig
+from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
+from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import band, band_key, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
 from jaxusar.experiments.stats import in_words, summarize
-from jaxusar.experiments.train import environment_info, stage_seconds
+from jaxusar.experiments.train import environment_info, reference_metrics, stage_seconds
 
 
-def build(cfg: ExperimentConfig):
+def build(cfg: ExperimentConfig, subpolicy_act=None):
+    """Everything the two stages need. ``subpolicy_act(params, obs) -> action[1]``: how the coordinator's
+    macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
+    gives exact ones)."""
     env = envs.make(cfg.env.map, **cfg.env.overrides())
-    options = options_from_graph(env.graph)
-    tasks = sp.make_tasks(env, options, cfg.hierarchical.triage_start, cfg.hierarchical.navigate_start)
-    params = sp.task_params(env, options, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
+    h, c = cfg.hierarchical, cfg.hierarchical.coordinator
+    options = options_from_graph(env.graph, h.navigation)
+    if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
+        raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among {options.n ** env.n_agents:,} "
+                          f"joint options ({options.n} options ^ {env.n_agents} medics), more than "
+                          f"hierarchical.coordinator.max_joint_options={c.max_joint_options:,}; use the factored "
+                          "coordinator (--set hierarchical.coordinator.kind=factored), linear in the medics")
+    tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
+    params = sp.task_params(env, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
     senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features)
     sub_learner = sp.make_learner(senv, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
@@ -51,33 +60,62 @@ def build(cfg: ExperimentConfig):
     sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
                           train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0,
                           min_episode_steps=max(min_steps, 1))
-    policy_for = np.full((env.n_agents, options.n), -1, np.int32)
-    for k, t in enumerate(tasks):
-        agents = [t.agent] if t.agent >= 0 else range(env.n_agents)
-        for i in agents:
-            policy_for[i, t.option] = k
-    c = cfg.hierarchical.coordinator
-    macro = coord.MacroEnv(env, options, policy_for,
-                           subpolicy_act=lambda p, obs: sub_learner.greedy_act(p, obs, None)[0],
+    table = sp.policy_table(env, options, tasks, h.navigation)
+    check_rooms_reachable(env, options, table, h.navigation)
+    macro = coord.MacroEnv(env, options, table,
+                           subpolicy_act=subpolicy_act or (lambda p, obs: sub_learner.greedy_act(p, obs, None)[0]),
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
-                           option_timeout=c.option_timeout)
+                           option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
+                           factored=c.kind == "factored")
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
                               optimal_slack=cfg.train.optimal_slack)
-    optimal = planning.optimal_team_steps(env)
+    reference = planning.team_reference(env)
+    optimal = reference["steps"]
     coord_trainer = Trainer(macro, coord_learner, coord_train, learning_starts=c.learning_starts, train_every=1,
                             gradient_steps=c.gradient_steps,
                             optimal_steps=optimal, min_episode_steps=1, test_horizon=env.horizon)
     return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
                 sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,
-                optimal=optimal)
+                optimal=optimal, reference=reference)
+
+
+def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> None:
+    """Every victim's room is some medic's start region or has a NAVIGATE sub-policy in ``table``
+    (``sp.policy_table``); else a ConfigError names the room (adjacent navigation on a map with rooms
+    beyond the medics' neighbours)."""
+    start_region = env.graph.cell_region[tuple(env.layout.agent_start.T)]
+    for o in np.flatnonzero(options.kind == TRIAGE):
+        room = options.region[o]
+        nav = np.flatnonzero((options.kind == NAVIGATE) & (options.region == room))
+        if not ((start_region == room).any() or (table[:, :, nav] >= 0).any()):
+            raise ConfigError(f"no medic on {env.layout.name!r} can reach {env.graph.names[room]!r} for "
+                              f"{options.names[o]} with hierarchical.navigation={navigation} (sub-policies only to "
+                              "rooms next to a medic's start); use hierarchical.navigation=chained")
+
+
+def auto_option_timeout(env, options, tasks, params) -> int:
+    """``coordinator.option_timeout: 0``: 1.5x the longest shortest path of any option from any state it
+    may start in (a chained NAVIGATE across the map included), at least 50 steps (two_rooms: 50)."""
+    longest = 0
+    for o in range(options.n):
+        if options.kind[o] == NAVIGATE:
+            goal = env.graph.cell_region == options.region[o]
+            dist = planning.steps_to_goal(env.layout.blocked, np.full(env.layout.shape, -1, np.int32), goal)
+            starts = options.starts_from[np.maximum(env.graph.cell_region, 0), options.region[o]] & \
+                (env.graph.cell_region >= 0)
+            longest = max(longest, int(dist[starts].max()))
+    for k, t in enumerate(tasks):
+        if t.victim >= 0:
+            longest = max(longest, int(params.dist[k][tuple(t.initiation.T)].max()))
+    return max(50, -(-3 * longest // 2))
 
 
 def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     """The greedy coordinator's team episode, primitive step by primitive step (for pictures)."""
     p = coord.CoordinatorParams(subpolicy=sub_params)
-    decide = jax.jit(lambda obs: learner.greedy_act(coord_params, obs, None)[0][0])
-    info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_joint(obs)))
+    decide = jax.jit(lambda obs: macro.options_of(learner.greedy_act(coord_params, obs, None)[0]))
+    info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_options(obs)))
     act = jax.jit(lambda s, o, a: macro.primitive_actions(s, o, a, p))
     finished = jax.jit(macro.any_terminated)
     step = jax.jit(macro.env.step)
@@ -85,11 +123,11 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     states, rewards, decisions = [s], [], []
     done = False
     while not done:
-        j = int(decide(obs))
-        options = jnp.asarray(macro.joint[j])
-        active, valid = info(obs)
-        decisions.append([macro.options.names[o] for o in macro.joint[j]] + [bool(valid[j])])
-        if not bool(valid[j]):
+        options = decide(obs)
+        active, valid_options = info(obs)
+        valid = bool(valid_options[np.arange(macro.n_agents), np.asarray(options)].all())
+        decisions.append([macro.options.names[o] for o in np.asarray(options)] + [valid])
+        if not valid:
             s = s.replace(t=s.t + 1)
             states.append(s), rewards.append(macro.invalid_penalty)
             done = int(s.t) >= macro.horizon
@@ -213,7 +251,7 @@ class Experiment:
             "coordinator_episodes_to_solved": co["episodes_to_solved"],
             "coordinator_summary": summarize(co["episodes_to_optimal"]),
             "options": list(b["options"].names), "tasks": [t.name for t in tasks],
-            "optimal_team_steps": b["optimal"], "optimal_slack": cfg.train.optimal_slack,
+            **reference_metrics(b["reference"], co), "optimal_slack": cfg.train.optimal_slack,
             "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),

@@ -68,13 +68,14 @@ def print_progress(name: str, p: dict) -> None:
 
 
 def build(cfg: ExperimentConfig):
-    """env, planner optimum, learner, trainer for a flat (non-hierarchical) algorithm."""
+    """env, reference (``planning.team_reference``), learner, trainer for a flat (non-hierarchical) algorithm."""
     env = envs.make(cfg.env.map, **cfg.env.overrides())
-    optimal = planning.optimal_team_steps(env)
+    reference = planning.team_reference(env)
     learner = algos.algorithm(cfg.algo).make_learner(env, cfg.dqn)
     trainer = Trainer(env, learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
-                      train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=optimal)
-    return env, optimal, learner, trainer
+                      train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps,
+                      optimal_steps=reference["steps"])
+    return env, reference, learner, trainer
 
 
 def trial_keys(seed: int, trials: int, devices=None) -> jax.Array:
@@ -135,13 +136,23 @@ def stage_seconds(outcome: Outcome) -> dict:
             "chunks": outcome.chunks, "resumed_from_chunk": outcome.resumed_from_chunk}
 
 
-def flat_metrics(cfg: ExperimentConfig, results: dict, optimal: int, outcome: Outcome, **extra) -> dict:
+def reference_metrics(reference: dict, results: dict) -> dict:
+    """The team's reference (exact optimum or lower bound) and each trial's optimality gap: its shortest
+    solving test's steps / the lower bound (None where no test triaged every victim)."""
+    solved = [e is not None for e in results["episodes_to_solved"]]
+    return {"optimal_team_steps": reference["steps"], "reference": reference["reference"],
+            "team_lower_bound": reference["lower_bound"],
+            "optimality_gap": [round(int(s) / reference["lower_bound"], 4) if ok else None
+                               for s, ok in zip(results["best_length"], solved)]}
+
+
+def flat_metrics(cfg: ExperimentConfig, results: dict, reference: dict, outcome: Outcome, **extra) -> dict:
     """metrics.json of one Trainer's results (``extra`` keys go after ``algorithm``)."""
     eto = results["episodes_to_optimal"]
     return {
         "algorithm": cfg.algo, **extra, "trials": len(eto), "episodes_to_optimal": eto, **summarize(eto),
         "episodes_to_solved": results["episodes_to_solved"],
-        "optimal_team_steps": optimal, "optimal_slack": cfg.train.optimal_slack,
+        **reference_metrics(reference, results), "optimal_slack": cfg.train.optimal_slack,
         "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
         "env_steps_per_trial": results["env_steps"].tolist(), "seconds": stage_seconds(outcome),
         "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
@@ -159,16 +170,16 @@ class FlatExperiment:
 
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
         self.cfg = cfg
-        self.env, self.optimal, _, trainer = build(cfg)
+        self.env, self.reference, _, trainer = build(cfg)
         self.chains = [[Stage(cfg.algo, trainer, keys)]]
 
     def finish(self, out: Path, outcomes: dict[str, Outcome], quiet: bool = False) -> dict:
         cfg, o = self.cfg, outcomes[self.cfg.algo]
         results = o.results
-        metrics = flat_metrics(cfg, results, self.optimal, o)
+        metrics = flat_metrics(cfg, results, self.reference, o)
         write_trial_files(out, results)
         training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
-                        optimal_steps=self.optimal, reward_range=reward_range(self.env))
+                        optimal_steps=self.reference["steps"], reward_range=reward_range(self.env))
         if not quiet:
             print(f"[{cfg.algo}] {in_words(results['episodes_to_optimal'], cfg.train.episodes)}", flush=True)
         return metrics
