@@ -73,8 +73,12 @@ def main() -> None:
         try:
             run = subprocess.run([sys.executable, __file__, "--one", name], capture_output=True, text=True,
                                  timeout=args.limit)
-            row = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else \
-                {"error": run.stderr.strip().splitlines()[-1]}
+            if run.returncode == 0:
+                row = json.loads(run.stdout.strip().splitlines()[-1])
+            else:  # a negative code is the signal: -9 is the kernel's out-of-memory kill
+                last = run.stderr.strip().splitlines()[-1:] or [f"killed by signal {-run.returncode}"
+                                                                 if run.returncode < 0 else f"exit {run.returncode}"]
+                row = {"optimum": f"stopped: {last[0]}"}
         except subprocess.TimeoutExpired:
             row = {"optimum": f"stopped: past the {args.limit:g} s limit"}
         row["wall_seconds"] = round(time.perf_counter() - t, 1)

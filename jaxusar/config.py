@@ -88,6 +88,10 @@ class DQNConfig:
     tau: float = _field(1.0, lambda t: 0 < t <= 1, "in (0, 1]: 1 = hard copy every target_update_every; "
                         "< 1 = Polyak averaging each update")
     double_dqn: bool = _field(False)
+    one_hot_input: bool = _field(False, doc="the first layer looks up its weight rows at the observation's one-hot "
+                                 "blocks instead of multiplying the whole vector: the same network, a cost per block "
+                                 "instead of per feature (maps with wide cell inputs); float sums may round "
+                                 "differently, so off by default")
     loss: str = _field("huber", lambda s: s in ("huber", "mse"), "huber or mse")
     max_grad_norm: float = _field(10.0, _positive)
     eps_start: float = _field(1.0, _unit_interval)

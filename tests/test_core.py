@@ -1,5 +1,6 @@
 """The learning core: replay, target rules, epsilon, trainer (trials, determinism, tests, best params), IQL."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -487,3 +488,23 @@ def test_episodes_to_optimal_in_words():
     assert in_words([1200, None, 300], 5000) == ("optimal in 2 of 3 trials, after 300, 1,200 episodes; never within "
                                                  "5,000 in the other 1; median 1,200")
     assert in_words([10, None, None], 100) .endswith("median > 100")
+
+
+def test_one_hot_input_layer_is_the_dense_layer():
+    """dqn.one_hot_input: the first layer looks up kernel rows at the one-hot blocks; the same parameters
+    (names, shapes, init) and, up to float rounding, the same outputs and gradients as the dense network."""
+    from jaxusar.core.qlearning import MLP
+
+    sizes = (5, 7, 4, 1, 3)
+    dense, looked_up = MLP((16, 16), 4), MLP((16, 16), 4, sizes)
+    key = jax.random.PRNGKey(0)
+    idx = jax.random.randint(key, (32, len(sizes)), 0, jnp.asarray(sizes) + 1)  # index == width: an all-zero block
+    obs = jnp.concatenate([jax.nn.one_hot(idx[:, b], n) for b, n in enumerate(sizes)], -1)
+    params = dense.init(key, obs[0])
+    chex.assert_trees_all_equal(params, looked_up.init(key, obs[0]))
+    np.testing.assert_allclose(looked_up.apply(params, obs), dense.apply(params, obs), rtol=1e-5, atol=1e-6)
+    loss = lambda net: (lambda p: jnp.sum(net.apply(p, obs) ** 2))
+    chex.assert_trees_all_close(jax.grad(loss(looked_up))(params), jax.grad(loss(dense))(params), rtol=1e-5,
+                                atol=1e-6)
+    with pytest.raises(ValueError, match="one_hot_input needs"):
+        ql.DQN(sum(sizes), 4, config.DQNConfig(one_hot_input=True), None)

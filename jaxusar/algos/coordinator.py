@@ -5,9 +5,10 @@ joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). ``coordina
 paper) has one Q-value per joint option, options ^ medics of them (refused past ``max_joint_options``:
 office would need 15^4 = 50,625); ``factored`` has one option head per medic, their values summed
 (``core.learners.FactoredDQN``, value decomposition), each medic's choice masked to the options it may
-start, so its parameters and compute grow linearly in the medics; both learn from the same SMDP target. The agents run their trained
-sub-policies greedily in the real team env until the first agent's option terminates (or the episode
-ends); then all options terminate and the coordinator decides again: one SMDP transition of k steps.
+start, so its parameters and compute grow linearly in the medics; both learn from the same SMDP target.
+The agents run their trained sub-policies greedily in the real team env until the first agent's option
+terminates (or the episode ends); then all options terminate and the coordinator decides again: one SMDP
+transition of k steps.
 
 Decisions left open by the paper, made here:
 
@@ -26,8 +27,9 @@ Decisions left open by the paper, made here:
   The SMDP target maximises over the joint options valid at the next decision. (The factored
   coordinator masks its greedy choice too: each medic's head only ranks that medic's valid options.)
 * Options also terminate after ``option_timeout`` primitive steps (default: 1.5x the longest optimal
-  option path on the map, at least 50: 50 on two_rooms, well above any optimal sub-task path there): an imperfect sub-policy can loop from a state it rarely saw,
-  and without a timeout one such loop ate the rest of the episode (measured: most of 300 steps).
+  option path on the map, at least 50: 50 on two_rooms, well above any optimal sub-task path there): an
+  imperfect sub-policy can loop from a state it rarely saw, and without a timeout one such loop ate the
+  rest of the episode (measured: most of 300 steps).
 * Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
   sum_i gamma^i r_{t+i} and its own discount gamma^k, so the shared target r + discount * max_valid Q is
   the SMDP target (Sutton, Precup and Singh 1999, eq. 8), and an n-step return chains whole options.

@@ -6,10 +6,11 @@ termination gradient, U); Chakravorty et al. 2019, "Option-Critic in Cooperative
 details beyond "centralized critic" and K in {2, 4, 8}; every choice below is ours, each a config value
 in ``doc:`` (``jaxusar.config.DOCConfig``) where the sources differ.
 
-Per agent i (two on the paper's map, any number N elsewhere): K intra-option policies pi_i(a | s, w_i) (softmax over the 4 primitive actions)
-and K terminations beta_i(s, w_i) (sigmoid), one small MLP per agent with a policy head (K x 4 logits)
-and a termination head (K logits) on a shared trunk (``doc.actor_hidden``), its own Adam
-(``doc.actor_lr``). Both agents see the full observation (the task is fully observable).
+Per agent i (two on the paper's map, any number N elsewhere): K intra-option policies pi_i(a | s, w_i)
+(softmax over the 4 primitive actions) and K terminations beta_i(s, w_i) (sigmoid), one small MLP per
+agent with a policy head (K x 4 logits) and a termination head (K logits) on a shared trunk
+(``doc.actor_hidden``), its own Adam (``doc.actor_lr``). Both agents see the full observation (the task is
+fully observable).
 
 **Critic.** Q(s, w1, w2), one MLP with K^2 outputs (joint option index w = w1 * K + w2; K^N for N
 agents, agent 1 most significant), trained by the

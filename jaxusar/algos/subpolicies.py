@@ -10,13 +10,15 @@ step, terminal there. Tasks:
   adjacent to X). The coordinator's NAVIGATE-TO-R then starts in any region and runs, region by
   region, the task of the next hop (``policy_table``): at most one task per region, whatever the
   number of medics (never medics x rooms^2).
-* ``adjacent`` (the paper, two_rooms' settings): NAVIGATE-TO-R for agent i (the paper trains "each
-  medic to each room"), where i's start region is adjacent to R. Half of the training episodes start
-  from agent i's start, half anywhere in the option's initiation set (every open cell of the regions adjacent to R, any facing); greedy tests
-  start from agent i's start, which is what Fig. 4 measures. (Initiation-set starts alone: the exact
-  path from the start was rarely practised; measured 7 of 8 trials short of optimal on one task.) Why not train from the start alone: the coordinator terminates every option when
-  one completes, so navigation is often re-issued mid-way from hall states a start-only policy never
-  saw; such a policy then loops to the horizon (measured: no coordinator trial ever triaged both).
+* ``adjacent`` (the paper, two_rooms' settings): NAVIGATE-TO-R for agent i (the paper trains "each medic
+  to each room"), where i's start region is adjacent to R. Half of the training episodes start from
+  agent i's start, half anywhere in the option's initiation set (every open cell of the regions adjacent
+  to R, any facing); greedy tests start from agent i's start, which is what Fig. 4 measures.
+  (Initiation-set starts alone: the exact path from the start was rarely practised; measured 7 of 8
+  trials short of optimal on one task.) Why not train from the start alone: the coordinator terminates
+  every option when one completes, so navigation is often re-issued mid-way from hall states a
+  start-only policy never saw; such a policy then loops to the horizon (measured: no coordinator trial
+  ever triaged both).
 * TRIAGE-v, shared by all agents (its input is one agent's features), starting uniformly at any open
   cell of v's room with any facing (``triage_start: room``: "assuming the agent is already in the
   room", Sec. IV-B) or at the room's entry cells (``entry``: cells next to another region).

@@ -21,6 +21,7 @@ import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -54,17 +55,41 @@ def double_q_learning_target(r_t, discount_t, q_t_value, q_t_selector, valid_t=N
 
 
 # -- the shared DQN machinery -----------------------------------------------------------------------
-class MLP(nn.Module):
-    """A plain ReLU MLP mapping features float[..., D] to float[..., n_out]."""
+class OneHotDense(nn.Module):
+    """``nn.Dense`` on an input made of one-hot blocks (widths ``sizes``; a width-1 block is a flag), by
+    looking up the kernel's rows at each block's 1 instead of multiplying the whole vector: the same
+    function and parameters (names, shapes, init), at a cost per block instead of per feature."""
 
-    hidden: Sequence[int]
-    n_out: int
+    features: int
+    sizes: Sequence[int]
 
     @nn.compact
     def __call__(self, x):
-        for width in self.hidden:
-            x = nn.relu(nn.Dense(width)(x))
-        return nn.Dense(self.n_out)(x)
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
+        codes = rb.OneHotCodec(self.sizes).encode(x).astype(jnp.int32)  # [..., blocks]; width = all zero
+        sizes = jnp.asarray(self.sizes)
+        offsets = jnp.asarray(np.cumsum((0,) + tuple(self.sizes[:-1])))
+        rows = kernel[offsets + jnp.minimum(codes, sizes - 1)]  # [..., blocks, features]
+        return jnp.sum(jnp.where((codes < sizes)[..., None], rows, 0.0), axis=-2) + bias
+
+
+class MLP(nn.Module):
+    """A plain ReLU MLP mapping features float[..., D] to float[..., n_out]. With ``one_hot_blocks`` (the
+    input's one-hot block widths) the first layer is a ``OneHotDense``: the same network, cheaper on wide
+    one-hot inputs."""
+
+    hidden: Sequence[int]
+    n_out: int
+    one_hot_blocks: Sequence[int] | None = None
+
+    @nn.compact
+    def __call__(self, x):
+        for i, width in enumerate(self.hidden):
+            layer = OneHotDense(width, self.one_hot_blocks, name="Dense_0") if i == 0 and self.one_hot_blocks \
+                else nn.Dense(width, name=f"Dense_{i}")
+            x = nn.relu(layer(x))
+        return nn.Dense(self.n_out, name=f"Dense_{len(self.hidden)}")(x)
 
 
 @struct.dataclass
@@ -142,7 +167,9 @@ class DQN:
         self.codec = None if obs_blocks is None else rb.OneHotCodec(obs_blocks)
         if self.codec is not None and self.codec.dim != obs_dim:
             raise ValueError(f"obs_blocks {self.codec.sizes} sum to {self.codec.dim}, not obs_dim={obs_dim}")
-        self.network = MLP(tuple(cfg.hidden), n_actions)
+        if cfg.one_hot_input and self.codec is None:
+            raise ValueError("dqn.one_hot_input needs the observation's one-hot blocks (obs_blocks)")
+        self.network = MLP(tuple(cfg.hidden), n_actions, self.codec.sizes if cfg.one_hot_input else None)
         self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(learning_rate(cfg)))
 
     def q_values(self, params, obs: jax.Array) -> jax.Array:

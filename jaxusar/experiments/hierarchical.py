@@ -46,8 +46,8 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
     options = options_from_graph(env.graph, h.navigation)
     if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
-        raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among {options.n ** env.n_agents:,} "
-                          f"joint options ({options.n} options ^ {env.n_agents} medics), more than "
+        raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
+                          f"{options.n ** env.n_agents:,} joint options ({options.n} options ^ {env.n_agents} medics), more than "
                           f"hierarchical.coordinator.max_joint_options={c.max_joint_options:,}; use the factored "
                           "coordinator (--set hierarchical.coordinator.kind=factored), linear in the medics")
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)

@@ -252,7 +252,8 @@ def table2(results: dict) -> str:
                      f" | {h['budget_episodes']:,} | - | - | - |")
     lines += ["", "Solved: a greedy test triaged every victim, at any length; shortest test: the fewest steps of "
               f"any trial's best greedy test; gap: a trial's shortest solving test / the lower bound ({bound} steps), "
-              "median over the solved trials (1.00 = provably optimal). Hierarchical: a trial's count is the sum of its sub-policies' "
+              "median over the solved trials (1.00 = provably optimal). Hierarchical: a trial's count is the sum "
+              "of its sub-policies' "
               "episodes to optimal (from every initiation state, below) plus the coordinator's (the paper's "
               "accounting); the budget is the sum of the sub-policy and coordinator budgets."]
     if h and "subpolicy_episodes_to_optimal" in h:
@@ -274,7 +275,8 @@ def stage_table(h: dict, optimal_team_steps: int, exact: bool = True) -> list[st
         "it; exact, from the planner's distance tables); the paper's single-start test (the greedy episode from "
         "the medic's start, or from a random room cell for triage) is its own column. The coordinator is "
         f"optimal when its greedy team episode (over the trial's kept sub-policies) takes the {optimal_team_steps}-"
-        f"step {'optimum' if exact else 'lower bound'}. Kept params: the test with the most initiation states optimal.", "",
+        f"step {'optimum' if exact else 'lower bound'}. Kept params: the test with the most initiation states "
+        "optimal.", "",
         "| Stage | Best trial | Trials optimal | Median | IQM [95% CI] | Budget | Single start: trials optimal, "
         "median | Kept params: states optimal, worst trial / mean |",
         "|---|---|---|---|---|---|---|---|"]
