@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 
-DEMO_MAX_STATES = 50_000_000  # joint states bound above which `jaxusar demo` skips the exact search
 
 
 class UsageError(Exception):
@@ -66,8 +65,8 @@ def add_demo(subparsers) -> None:
 def demo(args: argparse.Namespace) -> int:
     from jaxusar.envs import ACTION_NAMES, DIRECTION_NAMES
     from jaxusar.envs.render import render_ascii, rollout_states, save_episode_strip, save_map
-    from jaxusar.planning import (agent_distances, joint_states_bound, optimal_team_plan, optimal_team_steps,
-                                  team_lower_bound)
+    from jaxusar.planning import (SEARCH_MAX_BOUND, agent_distances, joint_states_bound, optimal_team_plan,
+                                  optimal_team_steps, team_lower_bound)
 
     env = make_env(args, horizon=args.horizon)
     out = output_dir(args.out)  # before the work, so a bad --out fails fast
@@ -91,10 +90,10 @@ def demo(args: argparse.Namespace) -> int:
     print(f"\nLower bound on the team's steps (exact single-medic tours over victim assignments, collisions "
           f"ignored): {lower} ({time.perf_counter() - start:.2f} s)")
     bound = joint_states_bound(env)
-    if bound > DEMO_MAX_STATES:
+    if bound > SEARCH_MAX_BOUND:
         steps = None
         print(f"\nOptimal team steps: not searched; the exact joint BFS could visit up to {bound:.2g} states on "
-              f"this map ({env.n_agents} medics, {env.n_victims} victims; the demo searches up to {DEMO_MAX_STATES:.0e})")
+              f"this map ({env.n_agents} medics, {env.n_victims} victims; the exact search runs up to {SEARCH_MAX_BOUND:.0e})")
     else:
         steps = optimal_team_steps(env)
         print(f"\nOptimal team steps from the reset state (exact joint BFS): {steps}")
