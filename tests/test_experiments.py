@@ -100,7 +100,7 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(tmp
     m = json.loads((out / "metrics.json").read_text())
     assert m["config"]["algo"] == "hierarchical" and len(m["episodes_to_optimal"]) == 1
     assert m["config"]["env"]["map"].endswith("office.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
-    assert m["optimal_team_steps"] == 11 and len(m["tasks"]) == 6  # 2 medics x 2 rooms + 2 victims
+    assert m["optimal_team_steps"] == 11 and len(m["tasks"]) == 5  # navigation to each of 3 regions + 2 victims
     assert "Traceback" not in capsys.readouterr().err
 
 
