@@ -1,0 +1,51 @@
+"""What one sub-policy env step costs, per lane, at a map's full batch (the paper's method, stage 1).
+
+Builds the sub-policy trainer of ``--map`` for ``--trials`` trials (all tasks x trials as lanes), runs
+one chunk of ``--steps`` env steps per lane (compile, learning starts), then times a second one; each
+``--set`` list is one row. Intel Xeon numbers in benchmarks/README.md ("Sub-policy cost on big maps").
+
+    python benchmarks/subpolicy_cost.py --map office --trials 8 \\
+        --set dqn.one_hot_input=false --set dqn.one_hot_input=true
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+from jaxusar import algos, config
+from jaxusar.experiments import hierarchical
+
+
+def cost(map_name: str, trials: int, steps: int, sets: list[str]) -> tuple[int, float]:
+    cfg = config.load(None, [f"env.map={map_name}", f"train.chunk_steps={steps}"] + sets,
+                      defaults=algos.defaults("hierarchical"))
+    b = hierarchical.build(cfg)
+    trainer, lanes = b["sub_trainer"], len(b["tasks"]) * trials
+    params = jax.tree.map(lambda x: jnp.tile(x, (trials,) + (1,) * (x.ndim - 1)), b["task_params"])
+    state = trainer.run_chunk(trainer.init(jax.random.split(jax.random.PRNGKey(0), lanes), env_params=params))
+    jax.block_until_ready(state)
+    t = time.perf_counter()
+    jax.block_until_ready(trainer.run_chunk(state))
+    return lanes, time.perf_counter() - t
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--map", default="office")
+    p.add_argument("--trials", type=int, default=8)
+    p.add_argument("--steps", type=int, default=1000, help="env steps per lane in the timed chunk")
+    p.add_argument("--set", dest="sets", action="append", default=[], help="one row's settings, comma-separated")
+    args = p.parse_args()
+    for row in args.sets or [""]:
+        sets = [s for s in row.split(",") if s]
+        lanes, seconds = cost(args.map, args.trials, args.steps, sets)
+        print(f"{args.map} {row or 'defaults':40s} {lanes} lanes: {seconds:6.1f} s per {args.steps} steps = "
+              f"{1e6 * seconds / (args.steps * lanes):5.0f} us per lane-step", flush=True)
+
+
+if __name__ == "__main__":
+    main()
