@@ -18,8 +18,6 @@ from pathlib import Path
 import numpy as np
 
 
-
-
 class UsageError(Exception):
     """Bad input from the command line: reported in one line, exit status 2, no traceback."""
 
@@ -204,7 +202,6 @@ def train(args: argparse.Namespace) -> int:
     from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import train as experiment
-    from jaxusar.planning import SearchTooLarge
 
     check_run_arguments(args)
     try:
@@ -221,7 +218,7 @@ def train(args: argparse.Namespace) -> int:
         extra = {} if options is None else {"options": options}
         experiment.run(cfg, args.trials, out, force=args.force, quiet=args.quiet,
                        checkpoint_every=args.checkpoint_every, command=args.command_line, **extra)
-    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError, SearchTooLarge) as err:
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
         raise UsageError(str(err)) from None
     return 0
 
@@ -282,7 +279,6 @@ def reproduce(args: argparse.Namespace) -> int:
     from jaxusar.core.checkpoint import CheckpointError
     from jaxusar.envs import LayoutError
     from jaxusar.experiments import reproduce as experiment
-    from jaxusar.planning import SearchTooLarge
 
     check_run_arguments(args)
     if args.workers is not None and args.workers < 1:
@@ -292,7 +288,7 @@ def reproduce(args: argparse.Namespace) -> int:
         experiment.run(args.trials, args.out, quick=args.quick, sets=args.sets, force=args.force, quiet=args.quiet,
                        checkpoint_every=args.checkpoint_every, workers=args.workers, command=args.command_line,
                        map=args.map)
-    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError, SearchTooLarge) as err:
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
         raise UsageError(str(err)) from None
     return 0
 

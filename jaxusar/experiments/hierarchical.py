@@ -97,17 +97,13 @@ def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> N
 def auto_option_timeout(env, options, tasks, params) -> int:
     """``coordinator.option_timeout: 0``: 1.5x the longest shortest path of any option from any state it
     may start in (a chained NAVIGATE across the map included), at least 50 steps (two_rooms: 50)."""
-    longest = 0
-    for o in range(options.n):
-        if options.kind[o] == NAVIGATE:
-            goal = env.graph.cell_region == options.region[o]
-            dist = planning.steps_to_goal(env.layout.blocked, np.full(env.layout.shape, -1, np.int32), goal)
-            starts = options.starts_from[np.maximum(env.graph.cell_region, 0), options.region[o]] & \
-                (env.graph.cell_region >= 0)
-            longest = max(longest, int(dist[starts].max()))
+    longest, region = 0, env.graph.cell_region
     for k, t in enumerate(tasks):
         if t.victim >= 0:
             longest = max(longest, int(params.dist[k][tuple(t.initiation.T)].max()))
+        elif t.option >= 0:  # a NAVIGATE option's task: its table is the room's distance from anywhere
+            starts = options.starts_from[np.maximum(region, 0), t.region] & (region >= 0)
+            longest = max(longest, int(params.dist[k][starts].max()))
     return max(50, -(-3 * longest // 2))
 
 

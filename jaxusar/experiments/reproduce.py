@@ -224,7 +224,7 @@ def table2(results: dict) -> str:
         f"# Table II: episodes to the optimal policy ({results['map']}, "
         + (f"optimum {steps} team steps)" if exact else f"lower bound {steps} team steps)"),
         "",
-        (f"Paper: best of 8 trials (its map only). " if paper_map else "")
+        ("Paper: best of 8 trials (its map only). " if paper_map else "")
         + f"Ours: {results['trials']} trials each; a trial that never reached optimal within "
         "its budget counts as never (> budget); IQM = interquartile mean over trials with a 95% percentile-bootstrap "
         "interval. Regenerate with `" + results["command"] + "`."
