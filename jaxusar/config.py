@@ -114,6 +114,9 @@ class TrainConfig:
     test_every: int = _field(50, _positive, "a greedy test episode every this many training episodes")
     chunk_steps: int = _field(20_000, _positive, "env steps per jitted chunk (progress and checkpoints between chunks)")
     optimal_slack: int = _field(0, _non_negative, "a test is optimal within planner optimum + this many steps")
+    stop_at_optimal: bool = _field(False, doc="a trial stops once a test was optimal (its episodes to optimal and "
+                                   "kept params are those of the full budget; its curves end at the chunk "
+                                   "where that test ran)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -379,6 +379,29 @@ def test_finished_trials_stop_running_and_no_result_changes():
         np.testing.assert_array_equal(x, y)
 
 
+def test_stop_at_optimal_keeps_every_number_up_to_the_stop_and_runs_less():
+    """train.stop_at_optimal: a trial stops after the chunk of its first optimal test. Its episodes to
+    optimal, kept params and curves up to the stop equal the full run's; the rest is nan, and it ran
+    fewer env steps (counted steps: with drop_finished on, it also stops costing, as a finished trial)."""
+    sets = {"dqn.gamma": 0.9, "dqn.lr": 0.001, "dqn.train_every": 1, "train.chunk_steps": 200}
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    _, _, full_tr = _tiny_trainer(episodes=300, **sets)
+    _, _, stop_tr = _tiny_trainer(episodes=300, **sets, **{"train.stop_at_optimal": "true"})
+    stop_tr.drop_finished = False  # a trial left alone runs in a batch of 1, where XLA may round otherwise
+    full, stop = full_tr.results(full_tr.train(keys)), stop_tr.results(stop_tr.train(keys))
+    assert stop["episodes_to_optimal"] == full["episodes_to_optimal"] and None not in full["episodes_to_optimal"]
+    for x, y in zip(jax.tree.leaves(stop["best_params"]), jax.tree.leaves(full["best_params"])):
+        np.testing.assert_array_equal(x, y)
+    for k, eto in enumerate(full["episodes_to_optimal"]):
+        ran = int(np.sum(~np.isnan(stop["train_length"][k])))
+        assert eto <= ran < 300 and np.isnan(stop["train_length"][k, ran:]).all()
+        np.testing.assert_array_equal(stop["train_length"][k, :ran], full["train_length"][k, :ran])
+        tests = ran // 10
+        np.testing.assert_array_equal(stop["test_length"][k, :tests], full["test_length"][k, :tests])
+        assert np.isnan(stop["test_length"][k, tests:]).all()
+        assert stop["env_steps"][k] < full["env_steps"][k]
+
+
 def test_iql_learns_tiny_map_and_best_params_replay():
     # gamma 0.9: with no step penalty, a strong time preference is what makes the shortest plan best
     env, opt, tr = _tiny_trainer(episodes=300, **{"dqn.gamma": 0.9, "dqn.lr": 0.001, "dqn.train_every": 1})

@@ -232,9 +232,10 @@ class Trainer:
         learner = lrn.observe(s.learner, {"obs": s.obs, "action": action, "reward": reward, "next_obs": next_obs,
                                           "done": done, "info": info, "carry": s.actor, "next_carry": actor})
         ep_return, ep_length = s.ep_return + reward, s.ep_length + _steps_of(info)
-        counted = done & (s.episodes < cfg.episodes)
+        live = self._live(s.episodes, s.first_optimal_test)
+        counted = done & live
         slot = jnp.where(counted, s.episodes, cfg.episodes)
-        episodes = s.episodes + done
+        episodes = s.episodes + counted
         test_due = counted & (episodes % cfg.test_every == 0)
         obs0, state0 = self._reset(noise["reset_key"], s.env_params)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)
@@ -242,11 +243,20 @@ class Trainer:
             env_state=pick(state0, env_state), obs=pick(obs0, next_obs), actor=pick(lrn.init_carry(), actor),
             learner=learner, episodes=episodes,
             ep_return=jnp.where(done, 0.0, ep_return), ep_length=jnp.where(done, 0, ep_length),
-            env_steps=s.env_steps + (s.episodes < cfg.episodes),
+            env_steps=s.env_steps + live,
             pending_test=jnp.where(test_due, episodes // cfg.test_every - 1, s.pending_test),
             train_return=s.train_return.at[slot].set(ep_return),
             train_length=s.train_length.at[slot].set(ep_length),
         )
+
+    def _live(self, episodes, first_optimal_test):
+        """Whether trials still train: short of their episodes, and with ``stop_at_optimal`` not yet
+        tested optimal (jax or numpy arrays). A trial that is not records nothing more."""
+        live = episodes < self.cfg.episodes
+        return live & (first_optimal_test == NEVER) if self.cfg.stop_at_optimal else live
+
+    def _counts(self, state: TrainState):
+        return (np.asarray(state.trials.episodes), np.asarray(state.trials.first_optimal_test))
 
     def _snapshot(self, s: TrialState) -> TrialState:
         due = s.pending_test != NO_TEST
@@ -379,12 +389,12 @@ class Trainer:
         it out changes no result; the batch sizes are few (halvings), so few programs compile."""
         if not self.drop_finished or len(state.trials.episodes.sharding.device_set) > 1:
             return None
-        episodes = np.asarray(state.trials.episodes)
-        live = np.flatnonzero(episodes < self.cfg.episodes)
+        live = np.flatnonzero(self._live(*self._counts(state)))
+        n = len(state.trials.episodes)
         size = 1 << math.ceil(math.log2(max(len(live), 1)))
-        if 2 * size > len(episodes):
+        if 2 * size > n:
             return None
-        return np.concatenate([live, np.full(size - len(live), len(episodes))]).astype(np.int32)
+        return np.concatenate([live, np.full(size - len(live), n)]).astype(np.int32)
 
     # -- placement and compilation ---------------------------------------------------------------
     def place(self, state: TrainState, devices=None) -> TrainState:
@@ -416,8 +426,13 @@ class Trainer:
         max_steps = self.cfg.episodes * self.env.horizon
         return math.ceil(max_steps / self.chunk_steps) + 1
 
+    def _progress(self, state: TrainState) -> np.ndarray:
+        """Episodes per trial, a stopped trial's counted as the whole budget."""
+        episodes, first = self._counts(state)
+        return np.where(self._live(episodes, first), np.minimum(episodes, self.cfg.episodes), self.cfg.episodes)
+
     def done(self, state: TrainState) -> bool:
-        return bool(np.min(np.asarray(state.trials.episodes)) >= self.cfg.episodes)
+        return bool(np.min(self._progress(state)) >= self.cfg.episodes)
 
     def run_chunk(self, state: TrainState) -> TrainState:
         lanes = self.lanes_to_run(state)
@@ -435,7 +450,7 @@ class Trainer:
             if on_chunk is not None:
                 on_chunk(state)
             if progress is not None:
-                eps = np.minimum(np.asarray(state.trials.episodes), self.cfg.episodes)
+                eps = self._progress(state)
                 elapsed, frac = time.perf_counter() - start, self._fraction_done(state)
                 progress({"chunk": int(state.chunk), "episodes_min": int(eps.min()), "episodes_mean": float(eps.mean()),
                           "episodes_total": self.cfg.episodes, "elapsed": elapsed,
@@ -444,12 +459,19 @@ class Trainer:
 
     def _fraction_done(self, state: TrainState) -> float:
         """How far the slowest trial is through its episodes (a resumed run starts part-way)."""
-        return float(np.minimum(np.asarray(state.trials.episodes), self.cfg.episodes).min() / self.cfg.episodes)
+        return float(self._progress(state).min() / self.cfg.episodes)
 
     def results(self, state: TrainState) -> dict:
-        """Per-trial numpy results (leading trials axis) plus episodes_to_optimal as a list."""
+        """Per-trial numpy results (leading trials axis) plus episodes_to_optimal as a list. With
+        ``stop_at_optimal``, the episodes and tests a trial did not run are nan (curves as float)."""
         t = jax.device_get(state.trials)
         n, nt = self.cfg.episodes, self.n_tests
+        if self.cfg.stop_at_optimal:
+            ran = np.asarray(t.episodes)[:, None]
+            unrun = lambda x, count: np.where(np.arange(x.shape[1]) < count, x.astype(np.float32), np.nan)
+            t = t.replace(**{k: unrun(getattr(t, k), ran) for k in ("train_return", "train_length")},
+                          **{k: unrun(getattr(t, k), ran // self.cfg.test_every)
+                             for k in ("test_return", "test_length", "test_coverage")})
         first = np.asarray(t.first_optimal_test)
         eto = [None if f == NEVER else int((f + 1) * self.cfg.test_every) for f in first]
         solved = t.test_solved[:, :nt]

@@ -32,7 +32,7 @@ from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
 from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
-from jaxusar.experiments.plots import band, band_key, reward_range, smooth, training_figure
+from jaxusar.experiments.plots import band, band_key, forward_fill, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
 from jaxusar.experiments.stats import in_words, summarize
 from jaxusar.experiments.train import environment_info, reference_metrics, stage_seconds
@@ -152,8 +152,9 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
     for k, name in enumerate(names):
         tl, tel = results["train_length"][k], results["test_length"][k]  # [trials, episodes]
         band(axes[k, 0], np.arange(1, tl.shape[1] + 1), smooth(tl, 10))
-        band(axes[k, 1], results["test_episode"], tel)
-        band(axes[k, 2], results["test_episode"], 100 * results["test_coverage"][k], color="tab:purple")
+        # a trial that stopped at optimal (train.stop_at_optimal) keeps its optimal params: its last test holds
+        band(axes[k, 1], results["test_episode"], forward_fill(tel))
+        band(axes[k, 2], results["test_episode"], 100 * forward_fill(results["test_coverage"][k]), color="tab:purple")
         for ax, what in zip(axes[k, :2], ("train steps (moving avg 10)", "greedy test steps (from the start)")):
             ax.axhline(horizon, color="grey", ls=":", lw=1)
             if optimal[k] >= 0:
@@ -275,9 +276,12 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
         for stage, name, r in stages + [("coordinator", "coordinator", co)]:
             for j in range(trials):
                 for i, (ret, st) in enumerate(zip(r["train_return"][j], r["train_length"][j])):
-                    w.writerow([stage, name, j, "train", i + 1, float(ret), int(st), "", "", ""])
+                    if not np.isnan(ret):  # nan: not run (the trial stopped at optimal, train.stop_at_optimal)
+                        w.writerow([stage, name, j, "train", i + 1, float(ret), int(st), "", "", ""])
                 for e, ret, st, o, so, c in zip(r["test_episode"], r["test_return"][j], r["test_length"][j],
                                                 r["test_optimal"][j], r["test_start_optimal"][j], r["test_coverage"][j]):
+                    if np.isnan(ret):
+                        continue
                     w.writerow([stage, name, j, "test", int(e), float(ret), int(st), int(o), int(so),
                                 "" if np.isnan(c) else round(float(c), 6)])
     (out / "params").mkdir(exist_ok=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -9,6 +10,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+
+def forward_fill(x: np.ndarray) -> np.ndarray:
+    """Each nan (along the last axis) replaced by the last value before it."""
+    x = np.asarray(x, float)
+    idx = np.where(np.isnan(x), 0, np.arange(x.shape[-1]))
+    return np.take_along_axis(x, np.maximum.accumulate(idx, axis=-1), axis=-1)
 
 
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
@@ -25,11 +33,13 @@ def smooth(x: np.ndarray, window: int) -> np.ndarray:
 def band(ax, x, y, label=None, color=None):
     """Mean over trials (axis 0) with a band from the 25th to the 75th percentile and min-max faint."""
     y = np.asarray(y, float)
-    mean = y.mean(0)
-    (line,) = ax.plot(x, mean, label=label, color=color, lw=1.5)
-    lo, hi = np.percentile(y, [25, 75], axis=0)
-    ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.25, lw=0)
-    ax.fill_between(x, y.min(0), y.max(0), color=line.get_color(), alpha=0.08, lw=0)
+    with warnings.catch_warnings():  # nan: episodes a stopped trial did not run (train.stop_at_optimal)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(y, 0)
+        (line,) = ax.plot(x, mean, label=label, color=color, lw=1.5)
+        lo, hi = np.nanpercentile(y, [25, 75], axis=0)
+        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.25, lw=0)
+        ax.fill_between(x, np.nanmin(y, 0), np.nanmax(y, 0), color=line.get_color(), alpha=0.08, lw=0)
     return line
 
 
