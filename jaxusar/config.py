@@ -88,15 +88,6 @@ class DQNConfig:
     tau: float = _field(1.0, lambda t: 0 < t <= 1, "in (0, 1]: 1 = hard copy every target_update_every; "
                         "< 1 = Polyak averaging each update")
     double_dqn: bool = _field(False)
-    prioritized: bool = _field(False, doc="prioritized replay (Schaul et al. 2016): rows drawn with probability "
-                               "proportional to |TD error|^priority_alpha, the loss weighted by importance "
-                               "weights (size * P)^-priority_beta over the batch's largest")
-    priority_alpha: float = _field(0.6, _unit_interval, "prioritized replay: how much the TD error shapes "
-                                   "sampling, in [0, 1] (0 = uniform)")
-    priority_beta: float = _field(0.4, _unit_interval, "prioritized replay: importance-weight exponent, in [0, 1] "
-                                  "(1 = full correction of the sampling bias)")
-    priority_eps: float = _field(1e-4, _positive, "prioritized replay: added to |TD error| (in scaled reward units) "
-                                 "so that no row's priority is 0, > 0")
     one_hot_input: bool = _field(False, doc="the first layer looks up its weight rows at the observation's one-hot "
                                  "blocks instead of multiplying the whole vector: the same network, a cost per block "
                                  "instead of per feature (maps with wide cell inputs); float sums may round "
@@ -185,10 +176,9 @@ class HierarchicalConfig:
         "settings file, paper Fig. 4f)")
     triage_start: str = _field("room", lambda s: s in ("room", "entry"),
                                "triage tasks start anywhere in the room, or at its entry cells")
-    subpolicy_features: str = _field("factored", lambda s: s in ("factored", "cell", "pose"),
-                                     "a sub-policy's input: one-hot row, col and facing (factored), the "
-                                     "same plus a one-hot of the cell (cell), or plus one-hot cell and "
-                                     "one-hot pose, cell x facing (pose)")
+    subpolicy_features: str = _field("factored", lambda s: s in ("factored", "cell"),
+                                     "a sub-policy's input: one-hot row, col and facing (factored), or the "
+                                     "same plus a one-hot of the cell (cell)")
     navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
                                  "navigation tasks start half at the medic's start and half anywhere in the "
                                  "initiation set (mixed), or anywhere in it (initiation)")

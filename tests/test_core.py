@@ -54,51 +54,6 @@ def test_replay_under_vmap():
     np.testing.assert_array_equal(jax.vmap(rb.sample)(bufs, jnp.full((3, 2), 0.5))["x"], [[1, 1], [2, 2], [3, 3]])
 
 
-def test_prioritized_replay_draws_in_proportion_and_weights_the_bias():
-    """P(i) = p_i^alpha / sum p^alpha over the filled rows (stratified draws); weights (size P)^-beta over
-    the batch's largest; a new row takes the largest priority stored."""
-    buf = rb.init({"x": jnp.zeros((), jnp.int32)}, capacity=8, prioritized=True)
-    for i in range(4):
-        buf = rb.add(buf, {"x": jnp.int32(i)})
-    np.testing.assert_array_equal(buf.priority, [1, 1, 1, 1, 0, 0, 0, 0])
-    buf = rb.set_priority(buf, jnp.array([0, 1, 2, 3]), jnp.array([4.0, 0.0, 1.0, 9.0]))
-    alpha, beta, n = 0.5, 0.4, 14_000
-    idx, weight = rb.prioritized_indices(buf, jax.random.uniform(jax.random.PRNGKey(0), (n,)), alpha, beta)
-    counts = np.bincount(np.asarray(idx), minlength=8)
-    p = np.array([2.0, 0.0, 1.0, 3.0]) / 6.0  # sqrt of the priorities, normalised
-    np.testing.assert_allclose(counts[:4] / n, p, atol=2e-3)  # stratified: within a draw of exact
-    assert counts[4:].sum() == 0 and counts[1] == 0  # empty slots and zero priority never drawn
-    want = (4 * p[np.asarray(idx)]) ** -beta
-    np.testing.assert_allclose(weight, want / want.max(), rtol=1e-5)
-    assert float(rb.add(buf, {"x": jnp.int32(9)}).priority[4]) == 9.0
-
-
-def test_prioritized_update_sets_sampled_rows_to_their_td_error():
-    """After one prioritized DQN update, the sampled rows' priorities are |TD error| + priority_eps of that
-    update's batch, and the loss is weighted (weights of 1 give the uniform loss exactly)."""
-    from jaxusar.config import DQNConfig
-    from jaxusar.core.learners import dqn_target
-    from jaxusar.core.qlearning import DQN
-    cfg = DQNConfig(hidden=(8,), batch_size=4, buffer_capacity=16, prioritized=True, priority_eps=1e-3)
-    dqn = DQN(3, 2, cfg, dqn_target(cfg))
-    row = lambda i: {"obs": jnp.array([i % 2, 1, 0]), "action": jnp.int32(i % 2), "reward": jnp.float32(i),
-                     "next_obs": jnp.array([1, 0, i % 2]), "terminal": jnp.bool_(i == 5), "done": jnp.bool_(i == 5)}
-    st = dqn.init(jax.random.PRNGKey(0), row(0))
-    for i in range(6):
-        st = dqn.add(st, row(i))
-    u = jnp.array([0.1, 0.5, 0.2, 0.9])
-    batch = dqn.sample(st, u)
-    _, td = dqn.loss(st.params, st.target_params, batch, dqn.target_fn)
-    new = dqn.update(st, u)
-    np.testing.assert_allclose(new.replay.priority[batch["index"]], np.abs(td) + 1e-3, rtol=1e-6)
-    untouched = np.setdiff1d(np.arange(6), np.asarray(batch["index"]))
-    np.testing.assert_array_equal(new.replay.priority[untouched], 1.0)
-    ones = {**batch, "weight": jnp.ones(4)}
-    uniform = {k: v for k, v in batch.items() if k not in ("weight", "index")}
-    assert float(dqn.loss(st.params, st.target_params, ones, dqn.target_fn)[0]) == \
-        float(dqn.loss(st.params, st.target_params, uniform, dqn.target_fn)[0])
-
-
 def test_one_hot_codec_is_lossless_on_every_env_observation():
     """Replay rows store one integer per one-hot block; decoding gives back the env's exact features for
     random states of the team env and of a sub-task env with the cell input."""
@@ -486,9 +441,6 @@ def test_config_errors_name_the_key(sets, match):
     (["hierarchical.coordinator.n_step=0"], r"hierarchical.coordinator.n_step=0 is out of range"),
     (["hierarchical.coordinator.gradient_steps=0"], r"hierarchical.coordinator.gradient_steps=0 is out of range"),
     (["hierarchical.subpolicy_features=pixels"], r"hierarchical.subpolicy_features='pixels' is out of range"),
-    (["dqn.priority_alpha=1.5"], r"dqn.priority_alpha=1.5 is out of range \(prioritized replay.*\[0, 1\]"),
-    (["dqn.priority_beta=-0.1"], r"dqn.priority_beta=-0.1 is out of range"),
-    (["dqn.priority_eps=0"], r"dqn.priority_eps=0.0 is out of range"),
     (["hierarchical.navigate_start=anywhere"], r"hierarchical.navigate_start='anywhere' is out of range"),
 ])
 def test_new_core_options_are_checked_before_anything_compiles(sets, match):

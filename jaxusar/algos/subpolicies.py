@@ -204,9 +204,7 @@ class SubtaskEnv:
         self.horizon = int(horizon)
         self.region = env.graph.cell_region
         self.features = features
-        cells = self.height * self.width
-        self.obs_blocks = (self.height, self.width, 4, 1) + {"factored": (), "cell": (cells,),
-                                                              "pose": (cells, 4 * cells)}[features]
+        self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ())
         self.obs_dim = sum(self.obs_blocks)
 
     def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array) -> jax.Array:
@@ -216,11 +214,8 @@ class SubtaskEnv:
         precision optimality needs in far fewer updates: benchmarks/README.md)."""
         parts = [jax.nn.one_hot(pos[0], self.height), jax.nn.one_hot(pos[1], self.width),
                  jax.nn.one_hot(direction, 4), jnp.asarray(flag, jnp.float32)[None]]
-        cell = pos[0] * self.width + pos[1]
-        if self.features in ("cell", "pose"):
-            parts.append(jax.nn.one_hot(cell, self.height * self.width))
-        if self.features == "pose":
-            parts.append(jax.nn.one_hot(cell * 4 + direction, 4 * self.height * self.width))
+        if self.features == "cell":
+            parts.append(jax.nn.one_hot(pos[0] * self.width + pos[1], self.height * self.width))
         return jnp.concatenate(parts)
 
     def _obs(self, s: EnvState):

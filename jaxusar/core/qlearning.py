@@ -179,8 +179,7 @@ class DQN:
         params = self.network.init(key, jnp.zeros((self.obs_dim,), jnp.float32))
         row = self.compact(example_row)
         return DQNState(params=params, target_params=params, opt_state=self.optimizer.init(params),
-                        replay=rb.init(row, self.cfg.buffer_capacity, self.cfg.prioritized),
-                        updates=jnp.zeros((), jnp.int32))
+                        replay=rb.init(row, self.cfg.buffer_capacity), updates=jnp.zeros((), jnp.int32))
 
     def compact(self, row: dict) -> dict:
         row = dict(row)
@@ -212,9 +211,7 @@ class DQN:
         target = jax.lax.stop_gradient(target_fn(batch, q_t_target, q_t_online))
         td = self.action_value(q_tm1, batch["action"]) - target
         per = optax.huber_loss(td) if self.cfg.loss == "huber" else 0.5 * td ** 2
-        if "weight" in batch:  # prioritized replay's importance weights
-            per = per * batch["weight"]
-        return per.mean(), td
+        return per.mean()
 
     def sample(self, state: DQNState, u_sample: jax.Array) -> dict:
         """A replay batch with its ``cfg.n_step`` returns, observations as the network's input."""
@@ -227,11 +224,7 @@ class DQN:
             def extend(k):
                 q = self.q_values(state.target_params, self.decode(rows["obs"][k]))
                 return jnp.argmax(q, axis=-1) == rows["action"][k].reshape(k.shape).astype(jnp.int32)
-        idx = weight = None
-        if cfg.prioritized:
-            idx, weight = rb.prioritized_indices(state.replay, u_sample, cfg.priority_alpha, cfg.priority_beta)
-        batch = self.expand(rb.sample_returns(state.replay, u_sample, cfg.n_step, extend, idx))
-        return batch if idx is None else {**batch, "index": idx, "weight": weight}
+        return self.expand(rb.sample_returns(state.replay, u_sample, cfg.n_step, extend))
 
     def update(self, state: DQNState, u_sample: jax.Array, target_fn: TargetFn | None = None) -> DQNState:
         """One gradient step on a batch drawn with the uniforms u_sample float[batch_size].
@@ -240,11 +233,7 @@ class DQN:
         other parameters (option-critic's U uses the terminations) passes a closure over them.
         """
         batch = self.sample(state, u_sample)
-        grads, td = jax.grad(self.loss, has_aux=True)(state.params, state.target_params, batch,
-                                                      target_fn or self.target_fn)
-        if self.cfg.prioritized:
-            state = state.replace(replay=rb.set_priority(state.replay, batch["index"],
-                                                         jnp.abs(td) + self.cfg.priority_eps))
+        grads = jax.grad(self.loss)(state.params, state.target_params, batch, target_fn or self.target_fn)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         n = state.updates + 1

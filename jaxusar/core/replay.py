@@ -55,13 +55,11 @@ class OneHotCodec:
 
 @struct.dataclass
 class Replay:
-    """rows: pytree whose leaves have a leading [capacity] axis; pos: next write slot; size: filled rows;
-    priority: float32[capacity] for prioritized sampling (``prioritized``), None for uniform."""
+    """rows: pytree whose leaves have a leading [capacity] axis; pos: next write slot; size: filled rows."""
 
     rows: object
     pos: jax.Array
     size: jax.Array
-    priority: jax.Array | None = None
 
     @property
     def capacity(self) -> int:
@@ -74,23 +72,17 @@ def row_bytes(buffer: Replay) -> int:
     return sum(np.dtype(x.dtype).itemsize * math.prod(x.shape[lead:]) for x in jax.tree.leaves(buffer.rows))
 
 
-def init(example_row, capacity: int, prioritized: bool = False) -> Replay:
-    """An empty buffer whose rows look like ``example_row`` (shapes and dtypes are kept exactly); with
-    ``prioritized``, a priority per row (``prioritized_indices``)."""
+def init(example_row, capacity: int) -> Replay:
+    """An empty buffer whose rows look like ``example_row`` (shapes and dtypes are kept exactly)."""
     rows = jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), example_row)
-    return Replay(rows=rows, pos=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32),
-                  priority=jnp.zeros((capacity,), jnp.float32) if prioritized else None)
+    return Replay(rows=rows, pos=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
 
 
 def add(buffer: Replay, row) -> Replay:
-    """Write one row at ``pos`` (overwriting the oldest once full). A prioritized buffer gives it the
-    largest priority stored (1 in an empty buffer), so every row is drawn soon after it is written."""
+    """Write one row at ``pos`` (overwriting the oldest once full)."""
     rows = jax.tree.map(lambda store, x: store.at[buffer.pos].set(jnp.asarray(x, store.dtype)), buffer.rows, row)
-    priority = buffer.priority
-    if priority is not None:
-        priority = priority.at[buffer.pos].set(jnp.maximum(jnp.max(priority), 1.0))
     return Replay(rows=rows, pos=(buffer.pos + 1) % buffer.capacity,
-                  size=jnp.minimum(buffer.size + 1, buffer.capacity), priority=priority)
+                  size=jnp.minimum(buffer.size + 1, buffer.capacity))
 
 
 def can_sample(buffer: Replay, batch_size: int) -> jax.Array:
@@ -101,40 +93,14 @@ def _indices(buffer: Replay, u: jax.Array) -> jax.Array:
     return jnp.minimum((u * buffer.size).astype(jnp.int32), jnp.maximum(buffer.size - 1, 0))
 
 
-def prioritized_indices(buffer: Replay, u: jax.Array, alpha: float, beta: float):
-    """Proportional prioritized sampling (Schaul et al. 2016): ``(idx int32[B], weight float32[B])``.
-
-    Row i is drawn with probability P(i) = p_i^alpha / sum_j p_j^alpha over the filled rows, stratified:
-    the b-th of B draws falls in the b-th of B equal segments of the cumulative sum, at fraction u[b]
-    of it. The weight (size * P(i))^-beta over the batch's largest corrects the sampling bias of the
-    loss. One cumulative sum over the buffer per batch (no sum tree: on the buffer sizes here, capacity
-    adds per update cost less than the network, and the rows stay a plain array).
-    """
-    filled = jnp.arange(buffer.capacity) < buffer.size
-    p = jnp.where(filled, buffer.priority, 0.0) ** alpha
-    cdf = jnp.cumsum(p)
-    total = cdf[-1]
-    target = (jnp.arange(u.shape[0]) + u) / u.shape[0] * total
-    idx = jnp.minimum(jnp.searchsorted(cdf, target, side="right"), jnp.maximum(buffer.size - 1, 0))
-    prob = p[idx] / total
-    weight = (buffer.size * prob) ** -beta
-    return idx.astype(jnp.int32), weight / jnp.max(weight)
-
-
-def set_priority(buffer: Replay, idx: jax.Array, value: jax.Array) -> Replay:
-    """The priorities of rows ``idx`` set to ``value`` (a repeated index takes one of its values)."""
-    return buffer.replace(priority=buffer.priority.at[idx].set(value.astype(jnp.float32)))
-
-
 def sample(buffer: Replay, u: jax.Array):
     """Rows at indices floor(u * size), uniformly over the filled slots. ``u`` float[batch] in [0, 1)."""
     idx = _indices(buffer, u)
     return jax.tree.map(lambda store: store[idx], buffer.rows)
 
 
-def sample_returns(buffer: Replay, u: jax.Array, n: int, extend=None, idx: jax.Array | None = None):
-    """Rows drawn as ``sample`` (or rows ``idx``, e.g. ``prioritized_indices``), each with its n-step
-    return (Sutton and Barto 2018, Sec. 7.1).
+def sample_returns(buffer: Replay, u: jax.Array, n: int, extend=None):
+    """Rows drawn as ``sample``, each with its n-step return (Sutton and Barto 2018, Sec. 7.1).
 
     The rows of one learner are written in time order, so row ``i``'s successors are ``i + 1, ...``.
     Each needs ``reward``, ``gamma`` (its own discount: gamma, or gamma^k for an SMDP step),
@@ -156,7 +122,7 @@ def sample_returns(buffer: Replay, u: jax.Array, n: int, extend=None, idx: jax.A
     return estimates the greedy policy's value, Q*, and not the exploring policy's (measured in
     benchmarks/README.md).
     """
-    idx = _indices(buffer, u) if idx is None else idx
+    idx = _indices(buffer, u)
     rows, cap = buffer.rows, buffer.capacity
     batch = jax.tree.map(lambda store: store[idx], rows)
     newer = (buffer.pos - 1 - idx) % cap  # rows written after row i
