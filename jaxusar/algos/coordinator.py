@@ -60,12 +60,16 @@ DEFAULTS = {
     # scale), an update every env step on batches of 64, 3-step returns cut where the current greedy policy
     # would act otherwise (no bias from old exploring data), discount 0.95 (errors of the bootstrap fade
     # 5x faster than at 0.99, action gaps as wide as 0.99's at the hall's distances), a decaying learning
-    # rate, Double DQN. (A map's settings file may set per-task discounts: two_rooms' triage-bottom 0.9.)
+    # rate, Double DQN, a Polyak-averaged target net (tau 0.005), and exploration that stays wide (epsilon
+    # decays over 100k env steps, ~0.8 at a lane's end): the Q of an action is only learned where it was
+    # tried, and the greedy tests, not the exploring episodes, are what counts. A sub-policy stops at its
+    # first test optimal from every initiation state. (A map's settings file may set per-task discounts:
+    # two_rooms' triage-bottom 0.9.)
     "dqn": {"hidden": [64, 64], "lr": 2e-3, "lr_schedule": "linear", "lr_end": 2e-4, "lr_decay_updates": 20000,
-            "gamma": 0.95, "train_every": 1, "batch_size": 64, "target_update_every": 200, "n_step": 3,
+            "gamma": 0.95, "train_every": 1, "batch_size": 64, "tau": 0.005, "n_step": 3,
             "n_step_cut_greedy": True, "reward_scale": 0.01,
-            "eps_decay_steps": 20000, "learning_starts": 500, "double_dqn": True},
-    "train": {"episodes": 600, "test_every": 10, "chunk_steps": 4000},
+            "eps_decay_steps": 100000, "learning_starts": 500, "double_dqn": True},
+    "train": {"episodes": 600, "test_every": 10, "chunk_steps": 4000, "stop_at_optimal": True},
     "hierarchical": {"subpolicy_features": "cell", "navigate_start": "initiation"},
 }
 

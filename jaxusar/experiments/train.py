@@ -102,10 +102,12 @@ def write_curves_csv(path: Path, results: dict) -> None:
         w.writerow(["trial", "kind", "episode", "return", "steps", "optimal"])
         for k in range(results["train_return"].shape[0]):
             for i, (r, s) in enumerate(zip(results["train_return"][k], results["train_length"][k])):
-                w.writerow([k, "train", i + 1, float(r), int(s), ""])
+                if not np.isnan(r):  # nan: not run (train.stop_at_optimal)
+                    w.writerow([k, "train", i + 1, float(r), int(s), ""])
             for e, r, s, o in zip(results["test_episode"], results["test_return"][k], results["test_length"][k],
                                   results["test_optimal"][k]):
-                w.writerow([k, "test", int(e), float(r), int(s), int(o)])
+                if not np.isnan(r):
+                    w.writerow([k, "test", int(e), float(r), int(s), int(o)])
 
 
 def save_params(folder: Path, best_params) -> None:
