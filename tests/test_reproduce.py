@@ -292,3 +292,20 @@ def test_reproduce_results_go_to_a_folder_named_after_the_map():
     assert {c.env.map for c in cfgs.values()} == {"four_rooms"}
     assert cfgs["hierarchical"].hierarchical.coordinator.kind == "factored"  # four_rooms' settings file
     assert cfgs["hierarchical"].train.episodes == 150  # --quick still applies
+
+
+def test_trainers_start_longest_first_counting_the_updates_per_env_step():
+    """The runner starts the chains in order of expected_cost: env steps alone would put the paper's
+    method (48 lanes x 600 episodes, a batch of 64 every step) after IQL (8 x 5000, 32 every 8 steps),
+    and on two cores the run would then end on it alone."""
+    from types import SimpleNamespace as NS
+
+    def stage(lanes, episodes, batch, train_every, gradient_steps=1, horizon=300):
+        trainer = NS(cfg=NS(episodes=episodes), test_horizon=horizon, train_every=train_every,
+                     gradient_steps=gradient_steps, learner=NS(cfg=NS(batch_size=batch)))
+        return NS(keys=[None] * lanes, trainer=trainer)
+
+    subpolicies, iql = stage(48, 600, 64, 1), stage(8, 5000, 32, 8)
+    assert reproduce.expected_cost(subpolicies) > reproduce.expected_cost(iql)
+    assert reproduce.expected_cost(iql) == 8 * 5000 * 300 * (1 + 3 * 32 / 8)
+    assert reproduce.expected_cost(stage(8, 5000, 32, 8, gradient_steps=2)) > reproduce.expected_cost(iql)

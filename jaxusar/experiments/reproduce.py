@@ -18,7 +18,7 @@ call per trainer, all trainers side by side (one per CPU core), with resumable c
     checkpoints/          while running (removed at the end): every trainer's state, for resuming
 
 Each algorithm's settings are its defaults (= ``configs/<algo>.yaml``); ``--quick`` lowers the budgets
-(QUICK below) for a first look in under two minutes. ``sets`` override settings of every algorithm
+(QUICK below) for a first look in minutes (README: its time). ``sets`` override settings of every algorithm
 (``env.horizon=200``) or of one (``iql.train.episodes=100``).
 """
 
@@ -50,7 +50,7 @@ PAPER_TABLE2 = {"hierarchical": "1030", "doc_K2": "1,500", "doc_K4": "never (> 5
 LABELS = {"hierarchical": "Hierarchical (sub-policies + coordinator)", "doc": "Distributed option-critic",
           "iql": "Independent Q-learning"}
 
-# --quick: the same pipeline on budgets that finish in under two minutes on a 2-core CPU.
+# --quick: the same pipeline on budgets that finish in minutes on a 2-core CPU (README: its time).
 QUICK = {
     "hierarchical": ["train.episodes=150", "hierarchical.coordinator.episodes=30"],
     "doc": ["train.episodes=200"],
@@ -165,8 +165,12 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
 
 
 def expected_cost(stage) -> float:
-    """A rough size of a stage's work, to start the longest first: lanes x episodes x horizon."""
-    return len(stage.keys) * stage.trainer.cfg.episodes * stage.trainer.test_horizon
+    """A rough size of a stage's work, to start the longest first: lanes x env steps (episodes x horizon,
+    a bound) x the work per env step (acting on one observation, and the replay ratio's share of a
+    batch through forward and backward, about three passes per sample)."""
+    t = stage.trainer
+    per_step = 1 + 3 * t.learner.cfg.batch_size * t.gradient_steps / t.train_every
+    return len(stage.keys) * t.cfg.episodes * t.test_horizon * per_step
 
 
 STATS = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal")
