@@ -10,11 +10,17 @@ Two parts of the method are tuned separately, each with the measure that predict
   its own learning is measured apart from the sub-policies' errors; reports trials optimal and the median
   episodes to optimal within 100 episodes.
 
+The baselines are tuned the same way, on their own measure (``iql``, ``doc``: a full ``jaxusar train``
+of that algorithm into a scratch folder): trials optimal, trials solved at any length, the median
+episodes to either, and the best test's steps per trial (per K for option-critic).
+
 Settings are ``--set`` overrides on the defaults of ``jaxusar train hierarchical`` (``dqn.*``,
 ``hierarchical.*``) or of the coordinator (``reward_scale=0.01 gradient_steps=8``: CoordinatorConfig keys)::
 
     python benchmarks/ablation.py subpolicies --seed 1000 --trials 8 --set dqn.n_step=1
     python benchmarks/ablation.py coordinator --seed 1000 --trials 16 --set gradient_steps=1
+    python benchmarks/ablation.py iql --seed 1000 --set dqn.n_step=3
+    python benchmarks/ablation.py doc --seed 1000 --set doc.options=[2] --set dqn.tau=0.005
 
 Each run appends its numbers to ``benchmarks/results/ablation.jsonl`` with the settings and the CPU.
 """
@@ -24,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -32,7 +39,7 @@ import numpy as np
 import yaml
 
 from jaxusar import algos, config
-from jaxusar.experiments import hierarchical
+from jaxusar.experiments import hierarchical, train
 from jaxusar.experiments.train import cpu_name, print_progress
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,9 +89,25 @@ def coordinator(seed: int, trials: int, sets: list[str]) -> dict:
             "wall_seconds": round(time.perf_counter() - start, 1)}
 
 
+def baseline(algo: str, seed: int, trials: int, sets: list[str]) -> dict:
+    cfg = config.load(None, sets + [f"seed={seed}"], defaults=algos.defaults(algo))
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as out:
+        m = train.run(cfg, trials, out, quiet=True)
+    wall = round(time.perf_counter() - start, 1)
+    def row(m):
+        solved = np.array([np.inf if e is None else e for e in m["episodes_to_solved"]])
+        median = float(np.median(solved))
+        return {"trials_optimal": sum(e is not None for e in m["episodes_to_optimal"]), "median": m["median"],
+                "trials_solved": int(np.isfinite(solved).sum()), "solved_median": median if np.isfinite(median) else None,
+                "best_test_return": m["best_test_return"], "best_test_steps": m["best_test_steps"]}
+    per = {f"K{k}": row(v) for k, v in m["per_options"].items()} if "per_options" in m else row(m)
+    return {**per, "wall_seconds": wall}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("part", choices=["subpolicies", "coordinator"])
+    ap.add_argument("part", choices=["subpolicies", "coordinator", "iql", "doc"])
     ap.add_argument("--seed", type=int, default=1000, help="a tuning seed (the reported runs use 0)")
     ap.add_argument("--trials", type=int, default=8)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
@@ -92,9 +115,12 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.seed == 0:
         ap.error("--seed 0 is the reported runs' seed; tune on others (e.g. 1000)")
-    run = subpolicies if args.part == "subpolicies" else coordinator
-    row = {"part": args.part, "sets": args.sets, "seed": args.seed, "trials": args.trials,
-           **run(args.seed, args.trials, args.sets), "machine": cpu_name(), "jax": jax.__version__}
+    if args.part in ("iql", "doc"):
+        numbers = baseline(args.part, args.seed, args.trials, args.sets)
+    else:
+        numbers = (subpolicies if args.part == "subpolicies" else coordinator)(args.seed, args.trials, args.sets)
+    row = {"part": args.part, "sets": args.sets, "seed": args.seed, "trials": args.trials, **numbers,
+           "machine": cpu_name(), "jax": jax.__version__}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a") as f:
         f.write(json.dumps(row) + "\n")
