@@ -99,7 +99,8 @@ def baseline(algo: str, seed: int, trials: int, sets: list[str]) -> dict:
         solved = np.array([np.inf if e is None else e for e in m["episodes_to_solved"]])
         median = float(np.median(solved))
         return {"trials_optimal": sum(e is not None for e in m["episodes_to_optimal"]), "median": m["median"],
-                "trials_solved": int(np.isfinite(solved).sum()), "solved_median": median if np.isfinite(median) else None,
+                "trials_solved": int(np.isfinite(solved).sum()),
+                "solved_median": median if np.isfinite(median) else None,
                 "best_test_return": m["best_test_return"], "best_test_steps": m["best_test_steps"]}
     per = {f"K{k}": row(v) for k, v in m["per_options"].items()} if "per_options" in m else row(m)
     return {**per, "wall_seconds": wall}
