@@ -6,9 +6,6 @@ one chunk of ``--steps`` env steps per lane (compile, learning starts), then tim
 
     python benchmarks/subpolicy_cost.py --map office --trials 8 \\
         --set dqn.one_hot_input=false --set dqn.one_hot_input=true
-    python benchmarks/subpolicy_cost.py --map two_rooms --trials 64 --lanes-per-call 0   # one call of all lanes
-
-``--lanes-per-call`` sets ``Trainer.lanes_per_call`` (0: every lane in one call; default: the package's).
 """
 
 from __future__ import annotations
@@ -23,14 +20,11 @@ from jaxusar import algos, config
 from jaxusar.experiments import hierarchical
 
 
-def cost(map_name: str, trials: int, steps: int, sets: list[str],
-         lanes_per_call: int | None = None) -> tuple[int, float]:
+def cost(map_name: str, trials: int, steps: int, sets: list[str]) -> tuple[int, float]:
     cfg = config.load(None, [f"env.map={map_name}", f"train.chunk_steps={steps}"] + sets,
                       defaults=algos.defaults("hierarchical"))
     b = hierarchical.build(cfg)
     trainer, lanes = b["sub_trainer"], len(b["tasks"]) * trials
-    if lanes_per_call is not None:
-        trainer.lanes_per_call = lanes_per_call or None
     params = jax.tree.map(lambda x: jnp.tile(x, (trials,) + (1,) * (x.ndim - 1)), b["task_params"])
     state = trainer.run_chunk(trainer.init(jax.random.split(jax.random.PRNGKey(0), lanes), env_params=params))
     jax.block_until_ready(state)
@@ -44,12 +38,11 @@ def main() -> None:
     p.add_argument("--map", default="office")
     p.add_argument("--trials", type=int, default=8)
     p.add_argument("--steps", type=int, default=1000, help="env steps per lane in the timed chunk")
-    p.add_argument("--lanes-per-call", type=int, default=None, help="0: every lane in one call")
     p.add_argument("--set", dest="sets", action="append", default=[], help="one row's settings, comma-separated")
     args = p.parse_args()
     for row in args.sets or [""]:
         sets = [s for s in row.split(",") if s]
-        lanes, seconds = cost(args.map, args.trials, args.steps, sets, args.lanes_per_call)
+        lanes, seconds = cost(args.map, args.trials, args.steps, sets)
         print(f"{args.map} {row or 'defaults':40s} {lanes} lanes: {seconds:6.1f} s per {args.steps} steps = "
               f"{1e6 * seconds / (args.steps * lanes):5.0f} us per lane-step", flush=True)
 

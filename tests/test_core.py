@@ -334,30 +334,6 @@ def test_finished_trials_stop_running_and_no_result_changes():
         np.testing.assert_array_equal(x, y)
 
 
-def test_lane_groups_give_every_trial_the_results_of_one_call():
-    """A chunk of more than lanes_per_call trials runs them in equal groups (padded), one after another,
-    through one program compiled ahead of time; every number equals the one-call run, finished trials
-    dropped in both."""
-    _, _, tr = _tiny_trainer(episodes=40, **{"train.chunk_steps": 100})
-    keys = jax.random.split(jax.random.PRNGKey(2), 8)
-    tr.lanes_per_call = 3
-    state = tr.init(keys)
-    assert [g.tolist() for g in tr.lane_groups(state)] == [[0, 1, 2], [3, 4, 5], [6, 7, 8]]  # 8: padding
-    tr.compile(state)
-    assert list(tr._group_chunk) == [3]
-    grouped = tr.train(keys, state=state)
-    tr.lanes_per_call = None
-    assert tr.lane_groups(tr.init(keys)) is None
-    whole = tr.train(keys)
-    a, b = tr.results(grouped), tr.results(whole)
-    for name in ("train_return", "train_length", "test_return", "test_length", "best_test", "env_steps"):
-        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
-    assert a["episodes_to_optimal"] == b["episodes_to_optimal"]
-    for x, y in zip(jax.tree.leaves(a["best_params"]), jax.tree.leaves(b["best_params"])):
-        np.testing.assert_array_equal(x, y)
-    assert int(grouped.step) == int(whole.step) and int(grouped.chunk) == int(whole.chunk)
-
-
 def test_stop_at_optimal_keeps_every_number_up_to_the_stop_and_runs_less():
     """train.stop_at_optimal: a trial stops after the chunk of its first optimal test. Its episodes to
     optimal, kept params and curves up to the stop equal the full run's; the rest is nan, and it ran

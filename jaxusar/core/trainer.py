@@ -33,11 +33,7 @@ stepping within its chunk (a vmap cannot stop one lane) but records nothing more
 exactly those of running it alone. Between chunks the host drops finished trials: once at most half of
 them still run, the next chunks run those only, gathered into a batch padded to a power of two and
 scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay (each
-smaller batch compiles its chunk once, counted in the run's seconds). And a chunk of more than
-``lanes_per_call`` trials runs them in equal groups, one after another, through one compiled program
-(``lane_groups``): on a CPU the cost per trial grows with the batch once a whole batch's parameters,
-optimizer and replay no longer fit in the caches, and a chunk's uniforms, drawn up front, take memory in
-proportion to its batch.
+smaller batch compiles its chunk once, counted in the run's seconds).
 
 Episode ``i``'s return and length, test ``j`` (after training episode ``(j + 1) * test_every``), the
 best test's params (paper Sec. V: catastrophic forgetting) and ``episodes_to_optimal`` (the
@@ -60,7 +56,6 @@ from jaxusar.config import ConfigError, TrainConfig
 NO_TEST = -1
 NEVER = np.iinfo(np.int32).max
 MAX_SNAPSHOT_SLOTS = 8  # policy snapshots awaiting their greedy test, per trial
-LANES_PER_CALL = 16  # trials per chunk call at most (Trainer's lanes_per_call; benchmarks/README.md)
 
 
 def trial_devices(devices=None) -> list:
@@ -134,15 +129,13 @@ class Trainer:
         updates); defaults to min(optimal_steps, horizon).
       drop_finished: between chunks, run only the trials still short of their episodes once at most half
         are (``lanes_to_run``); False steps every trial to the end.
-      lanes_per_call: a chunk of more trials runs them in equal groups of at most this many, one after
-        another (``lane_groups``); None: all in one call.
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
                  optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None,
-                 gradient_steps: int = 1, drop_finished: bool = True, lanes_per_call: int | None = LANES_PER_CALL):
+                 gradient_steps: int = 1, drop_finished: bool = True):
         self.env, self.learner, self.cfg = env, learner, cfg
-        self.drop_finished, self.lanes_per_call = drop_finished, lanes_per_call
+        self.drop_finished = drop_finished
         self.learning_starts, self.train_every = learning_starts, train_every
         self.gradient_steps = int(gradient_steps)
         self.optimal_steps = int(optimal_steps)
@@ -160,7 +153,6 @@ class Trainer:
         self.has_coverage = hasattr(env, "coverage")
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
         self._lanes_chunk = jax.jit(self._run_lanes, donate_argnums=0)
-        self._group_chunk = {}  # group size -> the ahead-of-time compiled _run_lanes (compile)
         self._init = jax.jit(jax.vmap(self._init_trial))
 
     # -- state ----------------------------------------------------------------------------------
@@ -395,7 +387,7 @@ class Trainer:
         half of all trials; None (run them all) before, with ``drop_finished`` off, or when the trials are
         sharded over several devices. A finished trial records nothing more (module docstring), so leaving
         it out changes no result; the batch sizes are few (halvings), so few programs compile."""
-        if not self.drop_finished or _sharded(state):
+        if not self.drop_finished or len(state.trials.episodes.sharding.device_set) > 1:
             return None
         live = np.flatnonzero(self._live(*self._counts(state)))
         n = len(state.trials.episodes)
@@ -403,21 +395,6 @@ class Trainer:
         if 2 * size > n:
             return None
         return np.concatenate([live, np.full(size - len(live), n)]).astype(np.int32)
-
-    def lane_groups(self, state: TrainState) -> list[np.ndarray] | None:
-        """This chunk's trials (``lanes_to_run``, else all) in equal groups of at most ``lanes_per_call``,
-        padded like ``lanes_to_run`` (an index past the last trial); None: one call of every trial. A
-        trial's chunk depends on no other trial but through the step counters, which every group starts
-        from, so the groups give each trial's results of one call wherever XLA rounds the smaller batch
-        alike. Off when the trials are sharded over several devices."""
-        lanes = self.lanes_to_run(state)
-        n = len(state.trials.episodes)
-        todo = np.arange(n, dtype=np.int32) if lanes is None else lanes
-        if not self.lanes_per_call or len(todo) <= self.lanes_per_call or _sharded(state):
-            return None if lanes is None else [lanes]
-        k = math.ceil(len(todo) / self.lanes_per_call)
-        size = math.ceil(len(todo) / k)
-        return list(np.concatenate([todo, np.full(k * size - len(todo), n, np.int32)]).reshape(k, size))
 
     # -- placement and compilation ---------------------------------------------------------------
     def place(self, state: TrainState, devices=None) -> TrainState:
@@ -440,11 +417,6 @@ class Trainer:
         """Compile the chunk ahead of time for ``state``'s shapes and placement (the output keeps the
         input's sharding, so every chunk reuses this one executable); returns the seconds it took."""
         start = time.perf_counter()
-        groups = self.lane_groups(state)
-        if groups is not None:  # the program every group of this size runs
-            lanes = jnp.asarray(groups[0])
-            self._group_chunk[len(lanes)] = self._lanes_chunk.lower(state, lanes).compile()
-            return time.perf_counter() - start
         shardings = jax.tree.map(lambda x: x.sharding, state)
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0, out_shardings=shardings).lower(state).compile()
         return time.perf_counter() - start
@@ -463,15 +435,8 @@ class Trainer:
         return bool(np.min(self._progress(state)) >= self.cfg.episodes)
 
     def run_chunk(self, state: TrainState) -> TrainState:
-        groups = self.lane_groups(state)
-        if groups is None:
-            return self._chunk(state)
-        step, chunk = int(state.step), int(state.chunk)  # every group starts from them (``state`` is donated)
-        for lanes in groups:
-            run = self._group_chunk.get(len(lanes), self._lanes_chunk)
-            state = run(state.replace(step=jnp.asarray(step, jnp.int32), chunk=jnp.asarray(chunk, jnp.int32)),
-                        jnp.asarray(lanes))
-        return state
+        lanes = self.lanes_to_run(state)
+        return self._chunk(state) if lanes is None else self._lanes_chunk(state, lanes)
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
               on_chunk: Callable | None = None, env_params=None) -> TrainState:
@@ -523,7 +488,3 @@ class Trainer:
             "episodes_to_optimal": eto, "episodes_to_solved": first_test(solved),
             "episodes_to_start_optimal": first_test(t.test_start_optimal[:, :nt]),
         }
-
-
-def _sharded(state: TrainState) -> bool:
-    return len(state.trials.episodes.sharding.device_set) > 1
