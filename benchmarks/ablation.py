@@ -40,6 +40,7 @@ import yaml
 
 from jaxusar import algos, config
 from jaxusar.experiments import hierarchical, train
+from jaxusar.experiments.stats import summarize
 from jaxusar.experiments.train import cpu_name, print_progress
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,11 +97,9 @@ def baseline(algo: str, seed: int, trials: int, sets: list[str]) -> dict:
         m = train.run(cfg, trials, out, quiet=True)
     wall = round(time.perf_counter() - start, 1)
     def row(m):
-        solved = np.array([np.inf if e is None else e for e in m["episodes_to_solved"]])
-        median = float(np.median(solved))
+        solved = m["episodes_to_solved"]
         return {"trials_optimal": sum(e is not None for e in m["episodes_to_optimal"]), "median": m["median"],
-                "trials_solved": int(np.isfinite(solved).sum()),
-                "solved_median": median if np.isfinite(median) else None,
+                "trials_solved": sum(e is not None for e in solved), "solved_median": summarize(solved)["median"],
                 "best_test_return": m["best_test_return"], "best_test_steps": m["best_test_steps"]}
     per = {f"K{k}": row(v) for k, v in m["per_options"].items()} if "per_options" in m else row(m)
     return {**per, "wall_seconds": wall}

@@ -26,7 +26,8 @@ from jaxusar.experiments import reproduce, stats
 # the one- and two-device programs of test_trials_sharded_over_two_devices_equal_one_device round a
 # barely trained lane's near-ties otherwise (its kept params optimal from 2 against 3 of 428 states; also
 # at commit 37e3489 with only the epsilon changed, and with lane dropping off), so equality across device
-# splits holds where XLA's programs round alike, not everywhere (README, "Seeds and machines").
+# splits holds where XLA's programs round alike, not everywhere ("Seeds and machines" in
+# results/two_rooms/README.md).
 TINY = ["--trials", "2", "--quiet", "--set", "env.horizon=60", "--set", "train.test_every=10",
         "--set", "hierarchical.dqn.eps_decay_steps=20000", "--set", "hierarchical.dqn.tau=1.0",
         "--set", "hierarchical.train.episodes=20", "--set", "hierarchical.train.chunk_steps=600",
