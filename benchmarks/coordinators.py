@@ -8,6 +8,8 @@ optimum, or the lower bound where the joint search is out of reach), the median 
 ratio to the lower bound, the network's parameters, and compile + run seconds.
 
     python benchmarks/coordinators.py            # writes benchmarks/results/coordinators.json
+    python benchmarks/coordinators.py --maps office --kinds factored \
+        --set hierarchical.coordinator.block_patience=2 --out /tmp/office.json   # one variant, one map
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ from jaxusar.experiments.train import environment_info
 MAPS = ("two_rooms", "three_rooms", "four_rooms", "office")
 
 
-def run(map_name: str, kind: str, trials: int, seed: int) -> dict:
-    cfg = config.load(None, [f"env.map={map_name}", f"hierarchical.coordinator.kind={kind}", f"seed={seed}"],
-                      defaults=algos.defaults("hierarchical"))
+def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, ...] = ()) -> dict:
+    cfg = config.load(None, [f"env.map={map_name}", f"hierarchical.coordinator.kind={kind}", f"seed={seed}",
+                             *overrides], defaults=algos.defaults("hierarchical"))
     probe = hierarchical.build(cfg)
     act, tables = sp.exact_subpolicies(probe["env"], probe["task_params"])
     b = hierarchical.build(cfg, subpolicy_act=act)
@@ -60,19 +62,24 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--trials", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--maps", nargs="+", default=MAPS, help="shipped map names or layout paths")
+    p.add_argument("--kinds", nargs="+", default=("flat", "factored"), choices=("flat", "factored"))
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override for every run (repeatable), as in `jaxusar train --set`")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "coordinators.json")
     args = p.parse_args()
     rows = {}
-    for m in MAPS:
-        for kind in ("flat", "factored"):
+    for m in args.maps:
+        for kind in args.kinds:
             try:
-                row = run(m, kind, args.trials, args.seed)
+                row = run(m, kind, args.trials, args.seed, tuple(args.set))
             except config.ConfigError as err:  # the flat head past its limit (office)
                 row = {"refused": str(err)}
             rows[f"{m}/{kind}"] = row
             print(f"{m:12s} {kind:9s} " + json.dumps({k: v for k, v in row.items() if k != "episodes_to_reference"}),
                   flush=True)
-    args.out.write_text(json.dumps({"runs": rows, "environment": environment_info()}, indent=2))
+    args.out.write_text(json.dumps({"runs": rows, "overrides": args.set, "environment": environment_info()},
+                                   indent=2))
     print(f"wrote {args.out}")
 
 

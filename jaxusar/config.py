@@ -143,6 +143,11 @@ class CoordinatorConfig:
     invalid_penalty: float = _field(-100.0, doc="reward for a joint option whose initiation set is not met")
     option_timeout: int = _field(0, _non_negative, "an option running this many primitive steps terminates; 0: "
                                  "1.5x the longest optimal path of any option, at least 50 (two_rooms: 50)")
+    block_patience: int = _field(0, _non_negative, "the options also end once a medic has stood this many steps "
+                                 "in a row blocked by another medic; 0: off (the paper's options)")
+    features: str = _field("regions", lambda s: s in ("regions", "cells"),
+                           "the coordinator's input: each medic's region and the triaged flags (regions, the "
+                           "paper's graph view), or the same plus each medic's row and column (cells)")
     hidden: tuple[int, ...] = _field((32,), lambda h: len(h) > 0 and all(w > 0 for w in h), "MLP widths")
     lr: float = _field(5e-3, _positive)
     gamma: float = _field(0.95, lambda g: 0 < g <= 1,

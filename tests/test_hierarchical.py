@@ -155,6 +155,52 @@ def test_macro_step_runs_until_the_first_option_terminates(two_rooms):
     assert not bool(done) and int(info["steps"]) == 7 and int(s3.t) == 7
 
 
+def _corridor_macro(**kw):
+    """Two rooms at the ends of a one-wide corridor; medic 0 bound east (NAVIGATE-TO-B-ROOM), medic 1 west,
+    scripted sub-policies that always go FORWARD."""
+    grid = "V.#######.V\n....AA....."
+    regions = "A a_room room\nB b_room room\nC hall hall\n---\nAA#######BB\nAACCCCCCCBB"
+    env = envs.make(envs.parse_layout(grid, regions, "corridor"))
+    opts = options_from_graph(env.graph, "adjacent")
+    macro = coord.MacroEnv(env, opts, np.zeros((2, opts.n), np.int32), subpolicy_act=lambda p, obs: jnp.array([0]),
+                           observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9, invalid_penalty=-100.0,
+                           option_timeout=7, factored=True, **kw)
+    options = jnp.array([opts.names.index("NAVIGATE-TO-B-ROOM"), opts.names.index("NAVIGATE-TO-A-ROOM")])
+    return macro, options, coord.CoordinatorParams(subpolicy=jnp.zeros((1, 1)))
+
+
+@pytest.mark.parametrize("patience", [0, 1, 3])
+def test_options_end_when_medics_block_each_other_head_on(patience):
+    """Head-on in the corridor, neither medic can move: the options run to the timeout (7) unless
+    block_patience ends them after that many blocked steps; a medic following another is not blocked."""
+    macro, options, p = _corridor_macro(block_patience=patience)
+    _, s = macro.reset(None)
+    head_on = s.replace(agent_dir=jnp.array([0, 2]))  # EAST, WEST: each faces the other
+    _, s2, _, done, info = jax.jit(macro.step)(None, head_on, options, p)
+    assert int(info["steps"]) == (patience or 7) and s2.agent_pos.tolist() == s.agent_pos.tolist()
+    # both bound east, medic 1 ahead: medic 0 (acting first) finds the cell taken, yet it moves next step
+    follow = s.replace(agent_dir=jnp.array([0, 0]))
+    east = jnp.array([options[0], options[0]])
+    _, s3, _, _, info = jax.jit(macro.step)(None, follow, east, p)
+    assert int(info["steps"]) == 4  # medic 1 reaches b_room (1, 9) in 4 steps; medic 0 lost one, first
+    assert s3.agent_pos.tolist() == [[1, 7], [1, 9]]
+
+
+def test_cell_features_say_where_medics_stand_and_keep_the_abstract_state():
+    plain, _, _ = _corridor_macro()
+    macro, _, _ = _corridor_macro(cells=True)
+    _, s = macro.reset(None)
+    obs = macro.observe(s)
+    env = macro.env
+    assert obs.shape == (plain.obs_dim + 2 * (env.height + env.width),) == (macro.obs_dim,)
+    assert sum(macro.obs_blocks) == macro.obs_dim
+    tail = np.asarray(obs[plain.obs_dim:]).reshape(2, env.height + env.width)
+    assert [np.flatnonzero(t).tolist() for t in tail] == [[1, env.height + 4], [1, env.height + 5]]
+    np.testing.assert_array_equal(obs[: plain.obs_dim], plain.observe(s))
+    for a, b in zip(macro.decode(obs), plain.decode(plain.observe(s))):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
     env, opts = two_rooms
     macro = _macro(env, opts)

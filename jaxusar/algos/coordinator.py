@@ -30,6 +30,12 @@ Decisions left open by the paper, made here:
   option path on the map, at least 50: 50 on two_rooms, well above any optimal sub-task path there): an
   imperfect sub-policy can loop from a state it rarely saw, and without a timeout one such loop ate the
   rest of the episode (measured: most of 300 steps).
+* Medics in each other's way (not in the paper: two medics, two rooms): the sub-policies are trained
+  alone and an agent cannot enter a cell another holds, so two medics meeting head-on in a one-wide
+  corridor or door stand there until the timeout. ``block_patience`` (off by default, 0) ends the
+  options once a medic has been stopped by another that many steps in a row, so the coordinator decides
+  again at once; ``features: cells`` lets it see where in a region each medic stands, which a region
+  one-hot cannot say (who of two medics in one corridor is east of the other).
 * Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
   sum_i gamma^i r_{t+i} and its own discount gamma^k, so the shared target r + discount * max_valid Q is
   the SMDP target (Sutton, Precup and Singh 1999, eq. 8), and an n-step return chains whole options.
@@ -47,7 +53,7 @@ from flax import struct
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
 from jaxusar.core.learners import FactoredDQN, IndependentDQN, default_row, dqn_target
-from jaxusar.envs.usar import TRIAGE, EnvState, USAREnv
+from jaxusar.envs.usar import DIR_DELTA, FORWARD, TRIAGE, EnvState, USAREnv
 
 ALGORITHM = "hierarchical"  # `jaxusar train hierarchical`: sub-policies, then the coordinator
 EXPERIMENT = "jaxusar.experiments.hierarchical"
@@ -89,10 +95,14 @@ class MacroEnv:
     task as the agent crosses regions. ``subpolicy_act(params, obs) -> action[1]`` runs one sub-policy
     greedily; ``observe(pos, dir, flag)`` builds its input. ``factored``: the action is the options
     themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
+    ``block_patience`` (0: off): the options also end once an active medic has stood this many steps in a
+    row blocked by another (FORWARD into a cell a medic holds). ``cells``: the abstract state also says
+    each medic's row and column (one-hot), not only its region.
     """
 
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
-                 gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False):
+                 gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
+                 block_patience: int = 0, cells: bool = False):
         self.env, self.options = env, options
         self.n_agents, self.horizon = env.n_agents, env.horizon
         self.n_regions = env.graph.n_regions
@@ -105,10 +115,12 @@ class MacroEnv:
         self.region_invariant = bool((policy_for == policy_for[:, :1]).all())
         self.subpolicy_act, self.observe_agent = subpolicy_act, observe
         self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
-        self.option_timeout = int(option_timeout)
-        self.factored = factored
+        self.option_timeout, self.block_patience = int(option_timeout), int(block_patience)
+        self.factored, self.cells = factored, cells
         self.n_joint = options.n ** env.n_agents
         self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims  # one-hot widths
+        if cells:
+            self.obs_blocks += (env.height, env.width) * env.n_agents
         self.obs_dim = sum(self.obs_blocks)
         # joint option index -> per-agent options (agent 0 most significant); the factored one never builds it
         self.joint = None if factored else \
@@ -121,11 +133,18 @@ class MacroEnv:
     # -- abstract state --------------------------------------------------------------------------
     def observe(self, s: EnvState) -> jax.Array:
         regions = self.env.graph.region_of(s.agent_pos)
-        return jnp.concatenate([jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)])
+        parts = [jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)]
+        if self.cells:
+            parts += [jnp.concatenate([jax.nn.one_hot(s.agent_pos[i, 0], self.env.height),
+                                       jax.nn.one_hot(s.agent_pos[i, 1], self.env.width)])
+                      for i in range(self.n_agents)]
+        return jnp.concatenate(parts)
 
     def decode(self, obs: jax.Array):
-        regions = jnp.argmax(obs[: self.n_agents * self.n_regions].reshape(self.n_agents, self.n_regions), -1)
-        return regions, obs[self.n_agents * self.n_regions:] > 0.5
+        """(regions int[n_agents], triaged bool[n_victims]) of an abstract state."""
+        n = self.n_agents * self.n_regions
+        regions = jnp.argmax(obs[:n].reshape(self.n_agents, self.n_regions), -1)
+        return regions, obs[n: n + self.env.n_victims] > 0.5
 
     def available(self, regions: jax.Array, triaged: jax.Array) -> jax.Array:
         """bool[n_agents, O]: options each agent may start (initiation set met and a sub-policy exists)."""
@@ -169,6 +188,24 @@ class MacroEnv:
         done = jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
         return jnp.any(active & done)
 
+    def advance(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
+                p: CoordinatorParams):
+        """One primitive step of a running joint option: (state, team reward, done, blocked), where
+        ``blocked`` int32[n_agents] counts each medic's steps in a row stopped by another medic."""
+        acts = self.primitive_actions(s, options, active, p)
+        _, st, r, done, _ = self.env.step(None, s, acts)
+        front = st.agent_pos + jnp.asarray(DIR_DELTA)[st.agent_dir]
+        held = jnp.all(front[:, None] == st.agent_pos[None], -1) & ~jnp.eye(self.n_agents, dtype=bool)
+        stopped = active & (acts == FORWARD) & jnp.all(st.agent_pos == s.agent_pos, -1) & held.any(-1)
+        return st, r, done, jnp.where(stopped, blocked + 1, 0)
+
+    def option_over(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
+                    k: jax.Array) -> jax.Array:
+        """bool: the joint option ends after ``k`` steps in ``s``: an active medic's option reached its
+        termination condition, the timeout, or (``block_patience``) a medic blocked that long."""
+        stuck = (self.block_patience > 0) & jnp.any(blocked >= self.block_patience)
+        return self.any_terminated(s, options, active) | (k >= self.option_timeout) | stuck
+
     def step(self, key, s: EnvState, action: jax.Array, p: CoordinatorParams):
         options = self.options_of(action)
         obs = self.observe(s)
@@ -176,17 +213,18 @@ class MacroEnv:
         valid = self.valid_options(obs)[jnp.arange(self.n_agents), options].all()
 
         def body(c):
-            st, ret, disc, k, done = c
-            _, st, r, done, _ = self.env.step(None, st, self.primitive_actions(st, options, active, p))
-            return st, ret + r, disc + self.gamma ** k * r, k + 1, done
+            st, ret, disc, k, done, blocked = c
+            st, r, done, blocked = self.advance(st, options, active, blocked, p)
+            return st, ret + r, disc + self.gamma ** k * r, k + 1, done, blocked
 
         def cond(c):
-            st, _, _, k, done = c
-            return ~done & ~self.any_terminated(st, options, active) & (k < self.option_timeout)
+            st, _, _, k, done, blocked = c
+            return ~done & ~self.option_over(st, options, active, blocked, k)
 
         zero = jnp.zeros((), jnp.float32)
         run = lambda st: jax.lax.while_loop(cond, body, (st, zero, zero, jnp.zeros((), jnp.int32),
-                                                         jnp.zeros((), bool)))
+                                                         jnp.zeros((), bool),
+                                                         jnp.zeros(self.n_agents, jnp.int32)))[:5]
         # an invalid choice: penalty, one step of standing still
         stand = lambda st: (st.replace(t=st.t + 1), jnp.float32(self.invalid_penalty),
                             jnp.float32(self.invalid_penalty), jnp.ones((), jnp.int32), st.t + 1 >= self.horizon)

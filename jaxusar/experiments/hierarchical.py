@@ -66,7 +66,8 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            subpolicy_act=subpolicy_act or (lambda p, obs: sub_learner.greedy_act(p, obs, None)[0]),
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
-                           factored=c.kind == "factored")
+                           factored=c.kind == "factored", block_patience=c.block_patience,
+                           cells=c.features == "cells")
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
                               optimal_slack=cfg.train.optimal_slack)
@@ -112,9 +113,8 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     p = coord.CoordinatorParams(subpolicy=sub_params)
     decide = jax.jit(lambda obs: macro.options_of(learner.greedy_act(coord_params, obs, None)[0]))
     info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_options(obs)))
-    act = jax.jit(lambda s, o, a: macro.primitive_actions(s, o, a, p))
-    finished = jax.jit(macro.any_terminated)
-    step = jax.jit(macro.env.step)
+    advance = jax.jit(lambda s, o, a, b: macro.advance(s, o, a, b, p))
+    over = jax.jit(macro.option_over)
     obs, s = macro.reset(None)
     states, rewards, decisions = [s], [], []
     done = False
@@ -128,12 +128,12 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
             states.append(s), rewards.append(macro.invalid_penalty)
             done = int(s.t) >= macro.horizon
         else:
-            start = len(rewards)
+            k, blocked = 0, np.zeros(macro.n_agents, np.int32)
             while True:
-                _, s, r, d, _ = step(None, s, act(s, options, active))
+                s, r, d, blocked = advance(s, options, active, blocked)
                 states.append(s), rewards.append(float(r))
-                done = bool(d)
-                if done or bool(finished(s, options, active)) or len(rewards) - start >= macro.option_timeout:
+                k, done = k + 1, bool(d)
+                if done or bool(over(s, options, active, blocked, k)):
                     break
         obs = macro.observe(s)
     return states, np.asarray(rewards, np.float32), decisions
