@@ -145,6 +145,10 @@ class CoordinatorConfig:
                                  "1.5x the longest optimal path of any option, at least 50 (two_rooms: 50)")
     block_patience: int = _field(0, _non_negative, "the options also end once a medic has stood this many steps "
                                  "in a row blocked by another medic; 0: off (the paper's options)")
+    termination: str = _field("all", lambda s: s in ("all", "own"),
+                              "all (the paper: every medic's option ends when the first one does, and the "
+                              "coordinator chooses for all) or own (each option runs to its own end; the "
+                              "coordinator chooses only for the medics whose options ended)")
     features: str = _field("regions", lambda s: s in ("regions", "cells"),
                            "the coordinator's input: each medic's region and the triaged flags (regions, the "
                            "paper's graph view), or the same plus each medic's row and column (cells)")

@@ -175,6 +175,7 @@ def test_options_end_when_medics_block_each_other_head_on(patience):
     block_patience ends them after that many blocked steps; a medic following another is not blocked."""
     macro, options, p = _corridor_macro(block_patience=patience)
     _, s = macro.reset(None)
+    s = s.env
     head_on = s.replace(agent_dir=jnp.array([0, 2]))  # EAST, WEST: each faces the other
     _, s2, _, done, info = jax.jit(macro.step)(None, head_on, options, p)
     assert int(info["steps"]) == (patience or 7) and s2.agent_pos.tolist() == s.agent_pos.tolist()
@@ -184,6 +185,30 @@ def test_options_end_when_medics_block_each_other_head_on(patience):
     _, s3, _, _, info = jax.jit(macro.step)(None, follow, east, p)
     assert int(info["steps"]) == 4  # medic 1 reaches b_room (1, 9) in 4 steps; medic 0 lost one, first
     assert s3.agent_pos.tolist() == [[1, 7], [1, 9]]
+
+
+def test_own_termination_lets_the_other_options_run_on():
+    """termination=own: medic 0 (bound west) reaches a_room in 3 steps; medic 1's NAVIGATE-TO-B runs on, is
+    in the abstract state and is its only valid choice, and keeps counting its steps; with the paper's rule
+    both options end."""
+    for own in (False, True):
+        macro, options, p = _corridor_macro(own_termination=own)
+        _, s = macro.reset(None)
+        s = s.replace(env=s.env.replace(agent_dir=jnp.array([2, 0])))  # medic 0 WEST, medic 1 EAST
+        to_a, to_b = int(options[1]), int(options[0])
+        obs, s2, _, _, info = jax.jit(macro.step)(None, s, jnp.array([to_a, to_b]), p)
+        assert int(info["steps"]) == 3 and s2.agent_pos.tolist() == [[1, 1], [1, 8]]
+        assert s2.running.tolist() == ([-1, to_b] if own else [-1, -1])
+        assert s2.elapsed.tolist() == ([0, 3] if own else [0, 0])
+        valid = np.asarray(macro.valid_options(obs))
+        assert valid[1].tolist() == ([o == to_b for o in range(macro.options.n)] if own else
+                                     np.asarray(macro.available(*macro.decode(obs)))[1].tolist())
+        assert macro.running_of(obs).tolist() == s2.running.tolist()
+        if own:  # medic 0 takes its room's triage; medic 1 arrives one step later, its option 4 steps old
+            triage = macro.options.names.index("TRIAGE-A-VICTIM")
+            _, s3, _, _, info = jax.jit(macro.step)(None, s2, jnp.array([triage, to_b]), p)
+            assert int(info["steps"]) == 1 and s3.running.tolist() == [triage, -1]
+            assert s3.elapsed.tolist() == [1, 0]
 
 
 def test_cell_features_say_where_medics_stand_and_keep_the_abstract_state():
@@ -228,7 +253,8 @@ def _oracle_macro(env, navigation, cfg):
     macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), act,
                            sp.SubtaskEnv(env, env.horizon).observe, cfg.gamma, cfg.invalid_penalty,
                            cfg.option_timeout or auto_option_timeout(env, opts, tasks, params),
-                           factored=cfg.kind == "factored")
+                           factored=cfg.kind == "factored", block_patience=cfg.block_patience,
+                           cells=cfg.features == "cells", own_termination=cfg.termination == "own")
     return macro, tasks, sub
 
 
@@ -412,6 +438,19 @@ def test_flat_coordinator_refuses_too_many_joint_options():
 
     with pytest.raises(ConfigError, match=r"50,625 joint options \(15 options \^ 4 medics\).*factored"):
         build(config.load(None, ["env.map=office", "hierarchical.coordinator.kind=flat"], defaults=coord_defaults()))
+
+
+@pytest.mark.parametrize("termination", ["all", "own"])
+def test_the_team_episode_picture_replays_the_greedy_test(termination):
+    """``team_episode`` (the pictures' step-by-step replay) takes exactly the steps and reward of the
+    trainer's best greedy test, under either termination rule."""
+    from jaxusar.experiments.hierarchical import team_episode
+
+    env, macro, learner, res, sub = _oracle_coordinator(episodes=30, trials=1, kind="factored",
+                                                        termination=termination, block_patience=2)
+    states, rewards, _ = team_episode(macro, learner, jax.tree.map(lambda x: x[0], res["best_params"]), sub)
+    assert len(rewards) == int(res["best_length"][0]) and len(states) == len(rewards) + 1
+    assert float(rewards.sum()) == pytest.approx(float(res["best_return"][0]))
 
 
 def test_automatic_option_timeout():

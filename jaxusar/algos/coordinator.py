@@ -36,6 +36,12 @@ Decisions left open by the paper, made here:
   options once a medic has been stopped by another that many steps in a row, so the coordinator decides
   again at once; ``features: cells`` lets it see where in a region each medic stands, which a region
   one-hot cannot say (who of two medics in one corridor is east of the other).
+* When options end (the paper, Sec. IV-C: all of them, when the first one does; ``termination: all``):
+  with four medics some option ends every few steps, and re-choosing every medic's option each time
+  made the medics change course over and over (measured on office). ``termination: own`` lets each
+  option run to its own end (its condition, the timeout counted over the decisions it outlives, or a
+  block); the running options are part of the abstract state, and a busy medic's only valid choice is
+  its running option, so the greedy choice, exploration and the SMDP target's max all hold it.
 * Reward: the team reward of the k steps; the SMDP row stores its in-option discounted sum
   sum_i gamma^i r_{t+i} and its own discount gamma^k, so the shared target r + discount * max_valid Q is
   the SMDP target (Sutton, Precup and Singh 1999, eq. 8), and an n-step return chains whole options.
@@ -81,6 +87,21 @@ DEFAULTS = {
 
 
 @struct.dataclass
+class MacroState:
+    """The team env's state and each medic's running option (-1: none) with the steps it has run: with
+    ``termination: own`` a medic's option outlives the decisions made for the others."""
+
+    env: EnvState
+    running: jax.Array  # int32[n_agents]
+    elapsed: jax.Array  # int32[n_agents]
+
+    agent_pos = property(lambda self: self.env.agent_pos)
+    agent_dir = property(lambda self: self.env.agent_dir)
+    triaged = property(lambda self: self.env.triaged)
+    t = property(lambda self: self.env.t)
+
+
+@struct.dataclass
 class CoordinatorParams:
     """Per-trial data the macro env needs: the trained sub-policies, stacked over tasks."""
 
@@ -97,12 +118,15 @@ class MacroEnv:
     themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
     ``block_patience`` (0: off): the options also end once an active medic has stood this many steps in a
     row blocked by another (FORWARD into a cell a medic holds). ``cells``: the abstract state also says
-    each medic's row and column (one-hot), not only its region.
+    each medic's row and column (one-hot), not only its region. ``own_termination``: a medic's option
+    ends only by its own termination condition (or timeout, or block); the coordinator then chooses for
+    the medics whose options ended, the others' running options being part of the abstract state and
+    their only valid choice (the paper: every option ends when the first one does).
     """
 
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
                  gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
-                 block_patience: int = 0, cells: bool = False):
+                 block_patience: int = 0, cells: bool = False, own_termination: bool = False):
         self.env, self.options = env, options
         self.n_agents, self.horizon = env.n_agents, env.horizon
         self.n_regions = env.graph.n_regions
@@ -116,11 +140,13 @@ class MacroEnv:
         self.subpolicy_act, self.observe_agent = subpolicy_act, observe
         self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
         self.option_timeout, self.block_patience = int(option_timeout), int(block_patience)
-        self.factored, self.cells = factored, cells
+        self.factored, self.cells, self.own_termination = factored, cells, own_termination
         self.n_joint = options.n ** env.n_agents
         self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims  # one-hot widths
         if cells:
             self.obs_blocks += (env.height, env.width) * env.n_agents
+        if own_termination:
+            self.obs_blocks += (options.n + 1,) * env.n_agents  # the running option, 0: none
         self.obs_dim = sum(self.obs_blocks)
         # joint option index -> per-agent options (agent 0 most significant); the factored one never builds it
         self.joint = None if factored else \
@@ -131,13 +157,15 @@ class MacroEnv:
         return action if self.factored else jnp.asarray(self.joint)[action[0]]
 
     # -- abstract state --------------------------------------------------------------------------
-    def observe(self, s: EnvState) -> jax.Array:
+    def observe(self, s: MacroState) -> jax.Array:
         regions = self.env.graph.region_of(s.agent_pos)
         parts = [jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)]
         if self.cells:
             parts += [jnp.concatenate([jax.nn.one_hot(s.agent_pos[i, 0], self.env.height),
                                        jax.nn.one_hot(s.agent_pos[i, 1], self.env.width)])
                       for i in range(self.n_agents)]
+        if self.own_termination:
+            parts.append(jax.nn.one_hot(s.running + 1, self.options.n + 1).ravel())
         return jnp.concatenate(parts)
 
     def decode(self, obs: jax.Array):
@@ -145,6 +173,13 @@ class MacroEnv:
         n = self.n_agents * self.n_regions
         regions = jnp.argmax(obs[:n].reshape(self.n_agents, self.n_regions), -1)
         return regions, obs[n: n + self.env.n_victims] > 0.5
+
+    def running_of(self, obs: jax.Array) -> jax.Array:
+        """int32[n_agents]: each medic's running option in an abstract state (-1: none)."""
+        if not self.own_termination:
+            return jnp.full(self.n_agents, -1, jnp.int32)
+        width = self.n_agents * (self.options.n + 1)
+        return jnp.argmax(obs[-width:].reshape(self.n_agents, -1), -1).astype(jnp.int32) - 1
 
     def available(self, regions: jax.Array, triaged: jax.Array) -> jax.Array:
         """bool[n_agents, O]: options each agent may start (initiation set met and a sub-policy exists)."""
@@ -155,7 +190,9 @@ class MacroEnv:
         """bool[n_agents, O]: each agent's valid part of a joint option: an available option, or any
         option for an idle agent (one with none available; its part is ignored)."""
         avail = self.available(*self.decode(obs))
-        return avail | ~avail.any(-1, keepdims=True)
+        running = self.running_of(obs)
+        own = jnp.arange(self.options.n) == running[:, None]  # a busy medic's only valid choice
+        return jnp.where(running[:, None] >= 0, own, avail | ~avail.any(-1, keepdims=True))
 
     def valid_joint(self, obs: jax.Array) -> jax.Array:
         """bool[n_joint]: joint options whose every agent's part is valid (flat coordinator only)."""
@@ -164,8 +201,14 @@ class MacroEnv:
 
     # -- dynamics ----------------------------------------------------------------------------------
     def reset(self, key, p: CoordinatorParams | None = None):
-        obs, s = self.env.reset(key)
+        _, s = self.env.reset(key)
+        s = self.wrap(s)
         return self.observe(s), s
+
+    def wrap(self, s: EnvState) -> MacroState:
+        """A team env state with no option running."""
+        none = jnp.full(self.n_agents, -1, jnp.int32)
+        return MacroState(env=s, running=none, elapsed=jnp.zeros(self.n_agents, jnp.int32))
 
     def primitive_actions(self, s: EnvState, options: jax.Array, active: jax.Array, p: CoordinatorParams):
         """int32[n_agents]: each active agent's sub-policy action for its option; TRIAGE for idle ones."""
@@ -182,11 +225,14 @@ class MacroEnv:
             acts.append(jnp.where(active[i], a, TRIAGE))
         return jnp.stack(acts).astype(jnp.int32)
 
+    def terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
+        """bool[n_agents]: the active medics whose options have reached their termination condition in ``s``."""
+        triaged = jnp.broadcast_to(s.triaged, (self.n_agents,) + s.triaged.shape)
+        return active & jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
+
     def any_terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
         """bool: some active agent's option has reached its termination condition in ``s``."""
-        triaged = jnp.broadcast_to(s.triaged, (self.n_agents,) + s.triaged.shape)
-        done = jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
-        return jnp.any(active & done)
+        return jnp.any(self.terminated(s, options, active))
 
     def advance(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                 p: CoordinatorParams):
@@ -199,18 +245,35 @@ class MacroEnv:
         stopped = active & (acts == FORWARD) & jnp.all(st.agent_pos == s.agent_pos, -1) & held.any(-1)
         return st, r, done, jnp.where(stopped, blocked + 1, 0)
 
-    def option_over(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
-                    k: jax.Array) -> jax.Array:
-        """bool: the joint option ends after ``k`` steps in ``s``: an active medic's option reached its
-        termination condition, the timeout, or (``block_patience``) a medic blocked that long."""
-        stuck = (self.block_patience > 0) & jnp.any(blocked >= self.block_patience)
-        return self.any_terminated(s, options, active) | (k >= self.option_timeout) | stuck
+    def ended(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
+              elapsed: jax.Array) -> jax.Array:
+        """bool[n_agents]: the medics whose options end in ``s`` after ``elapsed`` steps each: their
+        termination condition, the timeout, or (``block_patience``) blocked that long."""
+        stuck = (self.block_patience > 0) & (blocked >= self.block_patience)
+        return self.terminated(s, options, active) | (elapsed >= self.option_timeout) | stuck
 
-    def step(self, key, s: EnvState, action: jax.Array, p: CoordinatorParams):
+    def option_over(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
+                    elapsed: jax.Array) -> jax.Array:
+        """bool: the decision's options run no further: some medic's option ended (``ended``)."""
+        return jnp.any(self.ended(s, options, active, blocked, elapsed))
+
+    def still_running(self, s: MacroState, st: EnvState, options: jax.Array, active: jax.Array,
+                      blocked: jax.Array, k: jax.Array):
+        """(running, elapsed) int32[n_agents] after a decision's ``k`` steps from ``s`` to ``st``: with
+        ``own_termination`` the options that did not end run on; else none does."""
+        if not self.own_termination:
+            return s.running, s.elapsed
+        over = self.ended(st, options, active, blocked, s.elapsed + k) | ~active
+        return jnp.where(over, -1, options), jnp.where(over, 0, s.elapsed + k)
+
+    def step(self, key, s: MacroState | EnvState, action: jax.Array, p: CoordinatorParams):
+        s = self.wrap(s) if isinstance(s, EnvState) else s
         options = self.options_of(action)
         obs = self.observe(s)
         active = self.available(*self.decode(obs)).any(-1)  # non-idle agents
         valid = self.valid_options(obs)[jnp.arange(self.n_agents), options].all()
+        zeros = jnp.zeros(self.n_agents, jnp.int32)
+        elapsed = s.elapsed if self.own_termination else zeros
 
         def body(c):
             st, ret, disc, k, done, blocked = c
@@ -219,20 +282,24 @@ class MacroEnv:
 
         def cond(c):
             st, _, _, k, done, blocked = c
-            return ~done & ~self.option_over(st, options, active, blocked, k)
+            return ~done & ~self.option_over(st, options, active, blocked, elapsed + k)
 
         zero = jnp.zeros((), jnp.float32)
-        run = lambda st: jax.lax.while_loop(cond, body, (st, zero, zero, jnp.zeros((), jnp.int32),
-                                                         jnp.zeros((), bool),
-                                                         jnp.zeros(self.n_agents, jnp.int32)))[:5]
+
+        def run(st):
+            st, ret, disc, k, _, blocked = jax.lax.while_loop(
+                cond, body, (st, zero, zero, jnp.zeros((), jnp.int32), jnp.zeros((), bool), zeros))
+            return (st, ret, disc, k) + self.still_running(s, st, options, active, blocked, k)
+
         # an invalid choice: penalty, one step of standing still
         stand = lambda st: (st.replace(t=st.t + 1), jnp.float32(self.invalid_penalty),
-                            jnp.float32(self.invalid_penalty), jnp.ones((), jnp.int32), st.t + 1 >= self.horizon)
-        st, ret, disc, k, _ = jax.lax.cond(valid, run, stand, s)
+                            jnp.float32(self.invalid_penalty), jnp.ones((), jnp.int32), s.running, s.elapsed)
+        st, ret, disc, k, running, elapsed = jax.lax.cond(valid, run, stand, s.env)
+        s = MacroState(env=st, running=running, elapsed=elapsed)
         terminated = jnp.all(st.triaged)
         done = terminated | (st.t >= self.horizon)
         info = {"terminated": terminated, "steps": k, "discounted_reward": disc, "valid": valid}
-        return self.observe(st), st, ret, done, info
+        return self.observe(s), s, ret, done, info
 
 
 def coordinator_dqn(cfg: CoordinatorConfig) -> DQNConfig:

@@ -67,7 +67,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
                            factored=c.kind == "factored", block_patience=c.block_patience,
-                           cells=c.features == "cells")
+                           cells=c.features == "cells", own_termination=c.termination == "own")
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
                               optimal_slack=cfg.train.optimal_slack)
@@ -115,7 +115,9 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_options(obs)))
     advance = jax.jit(lambda s, o, a, b: macro.advance(s, o, a, b, p))
     over = jax.jit(macro.option_over)
-    obs, s = macro.reset(None)
+    settle = jax.jit(macro.still_running)
+    obs, ms = macro.reset(None)
+    s = ms.env
     states, rewards, decisions = [s], [], []
     done = False
     while not done:
@@ -133,9 +135,12 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
                 s, r, d, blocked = advance(s, options, active, blocked)
                 states.append(s), rewards.append(float(r))
                 k, done = k + 1, bool(d)
-                if done or bool(over(s, options, active, blocked, k)):
+                if done or bool(over(s, options, active, blocked, ms.elapsed + k)):
                     break
-        obs = macro.observe(s)
+            running, elapsed = settle(ms, s, options, active, blocked, k)
+            ms = coord.MacroState(env=s, running=running, elapsed=elapsed)
+        ms = ms.replace(env=s)
+        obs = macro.observe(ms)
     return states, np.asarray(rewards, np.float32), decisions
 
 
