@@ -78,7 +78,8 @@ def main() -> None:
             rows[f"{m}/{kind}"] = row
             print(f"{m:12s} {kind:9s} " + json.dumps({k: v for k, v in row.items() if k != "episodes_to_reference"}),
                   flush=True)
-    args.out.write_text(json.dumps({"runs": rows, "overrides": args.set, "environment": environment_info()},
+    args.out.write_text(json.dumps({"runs": rows, "seed": args.seed, "overrides": args.set,
+                                    "environment": environment_info()},
                                    indent=2))
     print(f"wrote {args.out}")
 

@@ -462,6 +462,8 @@ def test_automatic_option_timeout():
     assert two["macro"].option_timeout == 50
     office = build(config.load(None, ["env.map=office"], defaults=coord_defaults()))
     assert office["macro"].option_timeout == 83  # ceil(1.5 * 55)
+    # office's settings file: options that run to their own end (two_rooms keeps the paper's rule)
+    assert office["macro"].own_termination and not two["macro"].own_termination
 
 
 def test_factored_coordinator_solves_four_rooms_over_exact_subpolicies():
