@@ -334,6 +334,17 @@ def test_finished_trials_stop_running_and_no_result_changes():
         np.testing.assert_array_equal(x, y)
 
 
+def test_finished_trials_drop_to_the_next_smaller_power_of_two():
+    """A batch that is not a power of two (office: 128 lanes, two_rooms at 64 trials: 384) compacts as soon
+    as the trials still running fit a smaller power of two, padded with an index past the last trial."""
+    _, _, tr = _tiny_trainer(episodes=40)
+    state = tr.init(jax.random.split(jax.random.PRNGKey(0), 6))
+    for live, want in [([1, 1, 1, 1, 1, 0], None), ([1, 1, 0, 1, 0, 0], [0, 1, 3, 6]), ([0, 0, 0, 1, 0, 0], [3])]:
+        tr._live = lambda episodes, first, mask=np.array(live, bool): mask
+        got = tr.lanes_to_run(state)
+        assert (None if got is None else got.tolist()) == want, live
+
+
 def test_stop_at_optimal_keeps_every_number_up_to_the_stop_and_runs_less():
     """train.stop_at_optimal: a trial stops after the chunk of its first optimal test. Its episodes to
     optimal, kept params and curves up to the stop equal the full run's; the rest is nan, and it ran

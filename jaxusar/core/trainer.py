@@ -30,10 +30,10 @@ covering ones; the test episode's own optimality is still recorded (``test_start
 
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
 stepping within its chunk (a vmap cannot stop one lane) but records nothing more, so its results are
-exactly those of running it alone. Between chunks the host drops finished trials: once at most half of
-them still run, the next chunks run those only, gathered into a batch padded to a power of two and
-scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay (each
-smaller batch compiles its chunk once, counted in the run's seconds).
+exactly those of running it alone. Between chunks the host drops finished trials: once the ones still
+running fit a power of two smaller than the whole batch, the next chunks run those only, gathered into
+a batch padded to that power of two and scattered back (``lanes_to_run``), so a slow trial no longer
+makes every finished one pay (each smaller batch compiles its chunk once, counted in the run's seconds).
 
 Episode ``i``'s return and length, test ``j`` (after training episode ``(j + 1) * test_every``), the
 best test's params (paper Sec. V: catastrophic forgetting) and ``episodes_to_optimal`` (the
@@ -127,8 +127,8 @@ class Trainer:
       optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
       min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
         updates); defaults to min(optimal_steps, horizon).
-      drop_finished: between chunks, run only the trials still short of their episodes once at most half
-        are (``lanes_to_run``); False steps every trial to the end.
+      drop_finished: between chunks, run only the trials still short of their episodes once they fit a
+        smaller power-of-two batch (``lanes_to_run``); False steps every trial to the end.
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
@@ -383,16 +383,16 @@ class Trainer:
         return out.replace(trials=trials)
 
     def lanes_to_run(self, state: TrainState) -> np.ndarray | None:
-        """The trials still short of their episodes, padded to a power of two, once that batch is at most
-        half of all trials; None (run them all) before, with ``drop_finished`` off, or when the trials are
-        sharded over several devices. A finished trial records nothing more (module docstring), so leaving
+        """The trials still short of their episodes, padded to a power of two, once that batch is smaller
+        than all trials (384 lanes: 256 once 256 or fewer run); None (run them all) before, with
+        ``drop_finished`` off, or when the trials are sharded over several devices. A finished trial records nothing more (module docstring), so leaving
         it out changes no result; the batch sizes are few (halvings), so few programs compile."""
         if not self.drop_finished or len(state.trials.episodes.sharding.device_set) > 1:
             return None
         live = np.flatnonzero(self._live(*self._counts(state)))
         n = len(state.trials.episodes)
         size = 1 << math.ceil(math.log2(max(len(live), 1)))
-        if 2 * size > n:
+        if size >= n:
             return None
         return np.concatenate([live, np.full(size - len(live), n)]).astype(np.int32)
 
