@@ -230,10 +230,6 @@ class MacroEnv:
         triaged = jnp.broadcast_to(s.triaged, (self.n_agents,) + s.triaged.shape)
         return active & jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
 
-    def any_terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
-        """bool: some active agent's option has reached its termination condition in ``s``."""
-        return jnp.any(self.terminated(s, options, active))
-
     def advance(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                 p: CoordinatorParams):
         """One primitive step of a running joint option: (state, team reward, done, blocked), where
@@ -273,7 +269,7 @@ class MacroEnv:
         active = self.available(*self.decode(obs)).any(-1)  # non-idle agents
         valid = self.valid_options(obs)[jnp.arange(self.n_agents), options].all()
         zeros = jnp.zeros(self.n_agents, jnp.int32)
-        elapsed = s.elapsed if self.own_termination else zeros
+        elapsed = s.elapsed  # zeros under the paper's rule
 
         def body(c):
             st, ret, disc, k, done, blocked = c
