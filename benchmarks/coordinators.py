@@ -79,8 +79,7 @@ def main() -> None:
             print(f"{m:12s} {kind:9s} " + json.dumps({k: v for k, v in row.items() if k != "episodes_to_reference"}),
                   flush=True)
     args.out.write_text(json.dumps({"runs": rows, "seed": args.seed, "overrides": args.set,
-                                    "environment": environment_info()},
-                                   indent=2))
+                                    "environment": environment_info()}, indent=2))
     print(f"wrote {args.out}")
 
 

@@ -236,6 +236,8 @@ class MacroEnv:
         ``blocked`` int32[n_agents] counts each medic's steps in a row stopped by another medic."""
         acts = self.primitive_actions(s, options, active, p)
         _, st, r, done, _ = self.env.step(None, s, acts)
+        if not self.block_patience:  # nothing reads the counts
+            return st, r, done, blocked
         front = st.agent_pos + jnp.asarray(DIR_DELTA)[st.agent_dir]
         held = jnp.all(front[:, None] == st.agent_pos[None], -1) & ~jnp.eye(self.n_agents, dtype=bool)
         stopped = active & (acts == FORWARD) & jnp.all(st.agent_pos == s.agent_pos, -1) & held.any(-1)
@@ -245,8 +247,8 @@ class MacroEnv:
               elapsed: jax.Array) -> jax.Array:
         """bool[n_agents]: the medics whose options end in ``s`` after ``elapsed`` steps each: their
         termination condition, the timeout, or (``block_patience``) blocked that long."""
-        stuck = (self.block_patience > 0) & (blocked >= self.block_patience)
-        return self.terminated(s, options, active) | (elapsed >= self.option_timeout) | stuck
+        over = self.terminated(s, options, active) | (elapsed >= self.option_timeout)
+        return over | (blocked >= self.block_patience) if self.block_patience else over
 
     def option_over(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                     elapsed: jax.Array) -> jax.Array:

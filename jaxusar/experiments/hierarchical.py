@@ -129,6 +129,7 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
             s = s.replace(t=s.t + 1)
             states.append(s), rewards.append(macro.invalid_penalty)
             done = int(s.t) >= macro.horizon
+            ms = ms.replace(env=s)
         else:
             k, blocked = 0, np.zeros(macro.n_agents, np.int32)
             while True:
@@ -139,7 +140,6 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
                     break
             running, elapsed = settle(ms, s, options, active, blocked, k)
             ms = coord.MacroState(env=s, running=running, elapsed=elapsed)
-        ms = ms.replace(env=s)
         obs = macro.observe(ms)
     return states, np.asarray(rewards, np.float32), decisions
 
