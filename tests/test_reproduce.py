@@ -115,6 +115,37 @@ def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
         runner.run([[stage]])
 
 
+def test_a_checkpoint_is_due_once_the_chunk_has_run_not_when_it_was_dispatched(tmp_path, monkeypatch):
+    """JAX dispatches a chunk asynchronously, so its time passes where its results are first read (here: the
+    fake clock jumps 100 s then). A checkpoint every 60 s must then follow every chunk. (Reading the clock
+    at dispatch never saved the first chunk and, with slow chunks, only every other one: a kill lost up to
+    two 15-minute chunks of a 64-trial run.)"""
+    from jaxusar import config
+    from jaxusar.experiments.runner import Runner, Stage
+    from jaxusar.experiments.train import build
+
+    cfg = config.load(sets=["train.episodes=12", "train.test_every=4", "env.horizon=40", "train.chunk_steps=160"])
+    trainer = build(cfg)[3]
+    clock, ran, saved = [0.0], set(), []
+    counts = trainer._counts
+
+    def counts_after_the_work(state):  # the first read of a chunk's results: its work is done then
+        chunk = int(state.chunk)
+        if chunk not in ran:
+            ran.add(chunk)
+            clock[0] += 100.0
+        return counts(state)
+
+    monkeypatch.setattr(trainer, "_counts", counts_after_the_work)
+    monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
+    save = checkpoint.save
+    monkeypatch.setattr(checkpoint, "save", lambda path, tree, meta: (saved.append(meta["chunk"]),
+                                                                       save(path, tree, meta)))
+    runner = Runner(tmp_path, fingerprint="this-run", checkpoint_every=60.0)
+    out = runner.run([[Stage("iql", trainer, jax.random.split(jax.random.PRNGKey(0), 2))]])["iql"]
+    assert out.chunks >= 3 and saved == list(range(1, out.chunks + 1)), saved  # the last one: the final save
+
+
 def test_a_checkpoint_from_before_compact_replay_rows_is_refused(tmp_path):
     """A format-1 checkpoint (replay rows holding the observation features) is never read as today's rows:
     refused, naming its format and --force."""

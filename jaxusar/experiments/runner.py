@@ -119,7 +119,9 @@ class Runner:
             checkpoint.save(path, s, meta)
 
         def on_chunk(s):
-            if time.perf_counter() - last_save >= self.checkpoint_every and not trainer.done(s):
+            # JAX dispatches a chunk asynchronously: ``done`` reads its results, so it has run before the clock
+            # is read (read first, the clock said a checkpoint was due when the previous chunk had taken long)
+            if not trainer.done(s) and time.perf_counter() - last_save >= self.checkpoint_every:
                 save(s)
 
         progress = None if self.progress is None else (lambda info: self.progress(stage.name, info))
