@@ -36,7 +36,7 @@ def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, 
     cfg = config.load(None, [f"env.map={map_name}", f"hierarchical.coordinator.kind={kind}", f"seed={seed}",
                              *overrides], defaults=algos.defaults("hierarchical"))
     probe = hierarchical.build(cfg)
-    act, tables = sp.exact_subpolicies(probe["env"], probe["task_params"])
+    act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
     b = hierarchical.build(cfg, subpolicy_act=act)
     keys = jax.random.split(jax.random.PRNGKey(seed), trials)
     params = coord.CoordinatorParams(subpolicy=jnp.broadcast_to(tables, (trials, *tables.shape)))

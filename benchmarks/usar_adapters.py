@@ -52,8 +52,8 @@ def navigation_subtask(horizon: int = 300, name: str = SUBTASK, gamma: float = 0
     task = dataclasses.replace(task, starts=task.test_starts)  # the medic's start only
     stacked = sp.task_params(env, [task], gamma, {})
     params = jax.tree.map(lambda x: np.asarray(x[0]), stacked)
-    start = tuple(int(v) for v in task.test_starts[0])
-    return Subtask(env, sp.SubtaskEnv(env, horizon), params, start, int(params.dist[start]))
+    start = tuple(int(v) for v in task.test_starts[0, :3])  # (row, col, dir); goal index 0
+    return Subtask(env, sp.SubtaskEnv(env, horizon), params, start, int(params.dist[0][start]))
 
 
 class SubtaskGymEnv(gym.Env):
@@ -70,7 +70,7 @@ class SubtaskGymEnv(gym.Env):
         self.observation_space = gym.spaces.Box(0.0, 1.0, (self.obs_dim,), np.float32)
         self.action_space = gym.spaces.Discrete(N_ACTIONS)
         self.solid = np.asarray(p.solid, bool)
-        self.in_goal = np.asarray(senv.region) == int(p.goal_region)
+        self.in_goal = np.asarray(senv.region) == int(p.goal_region[0])
         self.backend = backend
         if backend == "jax":
             jp = jax.tree.map(jnp.asarray, p)

@@ -191,10 +191,11 @@ class HierarchicalConfig:
     navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
                                  "navigation tasks start half at the medic's start and half anywhere in the "
                                  "initiation set (mixed), or anywhere in it (initiation)")
-    navigation: str = _field("chained", lambda s: s in ("adjacent", "chained"),
-                             "adjacent (the paper: a sub-policy per medic and room next to its start region) or "
+    navigation: str = _field("chained", lambda s: s in ("adjacent", "chained", "goal"),
+                             "adjacent (the paper: a sub-policy per medic and room next to its start region), "
                              "chained (a sub-policy per region, shared by the medics; NAVIGATE to any room chains "
-                             "them along the region graph's shortest path)")
+                             "them along the region graph's shortest path) or goal (one sub-policy for every room, "
+                             "shared by the medics, told the room in its input)")
     coordinator: CoordinatorConfig = dataclasses.field(default_factory=CoordinatorConfig)
 
 

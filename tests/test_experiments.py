@@ -84,10 +84,12 @@ def sets(*kvs: str) -> list[str]:
     return [arg for kv in kvs for arg in ("--set", kv)]
 
 
-def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(tmp_path, capsys):
+@pytest.mark.parametrize("navigation", ["chained", "goal"])
+def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(navigation, tmp_path, capsys):
     """What `jaxusar train --help` lists trains on a tiny budget: iql above, doc in
     tests/test_option_critic.py (test_runner_learns_to_triage_on_a_tiny_map_and_writes_results), and the
-    paper's method here, with its default config, on a map without the two-rooms map's task names."""
+    paper's method here, with its default config (and with goal-conditioned navigation), on a map without
+    the two-rooms map's task names."""
     from jaxusar import algos
 
     assert sorted(algos.registry()) == ["doc", "hierarchical", "iql"]
@@ -96,11 +98,18 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(tmp
     assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet",
                  "--map", write_office(tmp_path)]
                 + sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
-                       "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4")) == 0
+                       "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4",
+                       f"hierarchical.navigation={navigation}")) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["config"]["algo"] == "hierarchical" and len(m["episodes_to_optimal"]) == 1
     assert m["config"]["env"]["map"].endswith("office.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
-    assert m["optimal_team_steps"] == 11 and len(m["tasks"]) == 5  # navigation to each of 3 regions + 2 victims
+    assert m["optimal_team_steps"] == 11
+    if navigation == "chained":
+        assert len(m["tasks"]) == 5  # navigation to each of 3 regions + 2 victims
+    else:  # one navigation task for both rooms: from the 38 open cells outside each room, any facing
+        assert m["tasks"][0] == "NAVIGATE-TO-ANY-ROOM" and len(m["tasks"]) == 3
+        assert m["subpolicy_initiation_states"]["NAVIGATE-TO-ANY-ROOM"] == 4 * (38 + 38)
+    assert 0 <= m["subpolicy_coverage"][m["tasks"][0]][0] <= 1
     assert "Traceback" not in capsys.readouterr().err
 
 

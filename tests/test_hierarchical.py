@@ -249,12 +249,14 @@ def _oracle_macro(env, navigation, cfg):
     opts = options_from_graph(env.graph, navigation)
     tasks = sp.make_tasks(env, opts, navigation=navigation)
     params = sp.task_params(env, tasks, 0.99, {})
-    act, sub = sp.exact_subpolicies(env, params)
+    senv = sp.SubtaskEnv(env, env.horizon, n_goals=max(len(t.goals) for t in tasks))
+    act, sub = sp.exact_subpolicies(senv, params)
     macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), act,
-                           sp.SubtaskEnv(env, env.horizon).observe, cfg.gamma, cfg.invalid_penalty,
+                           senv.observe, cfg.gamma, cfg.invalid_penalty,
                            cfg.option_timeout or auto_option_timeout(env, opts, tasks, params),
                            factored=cfg.kind == "factored", block_patience=cfg.block_patience,
-                           cells=cfg.features == "cells", own_termination=cfg.termination == "own")
+                           cells=cfg.features == "cells", own_termination=cfg.termination == "own",
+                           option_goals=sp.option_goals(opts, tasks))
     return macro, tasks, sub
 
 
@@ -294,41 +296,47 @@ def test_coordinator_learns_the_papers_assignment_with_exact_subpolicies():
         assert res["best_return"][k] == 200.0 and res["best_length"][k] == 18
 
 
-def _policy_tables(env, params, k, noise: float, seed: int):
-    """An action table int[H, W, 4] for task k: a shortest-path action everywhere, replaced by a random
-    action in a ``noise`` fraction of the states; and the numpy successor tables to roll it out."""
+def _policy_tables(senv, params, k, noise: float, seed: int):
+    """An action table int[G, H, W, 4] for task k (per goal index): a shortest-path action everywhere,
+    replaced by a random action in a ``noise`` fraction of the states; and the numpy successor tables to
+    roll it out."""
     nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
                                                                             jnp.asarray(params.victim_at[k])))
-    table = np.asarray(sp.exact_subpolicies(env, params)[1][k])
+    table = np.asarray(sp.exact_subpolicies(senv, params)[1][k])
     rng = np.random.default_rng(seed)
     flip = rng.random(table.shape) < noise
     return np.where(flip, rng.integers(0, 4, table.shape), table), nxt, hit
 
 
-@pytest.mark.parametrize("k,noise", [(0, 0.0), (2, 0.05), (3, 0.2), (4, 0.1), (5, 0.3)])
-def test_coverage_equals_a_rollout_from_every_initiation_state(two_rooms, k, noise):
-    """SubtaskEnv.coverage (one batched fixed point) against a plain rollout from each initiation state:
-    a state counts when the rollout reaches the sub-goal in exactly the planner's distance."""
-    env, opts = two_rooms
-    tasks = sp.make_tasks(env, opts)
+@pytest.mark.parametrize("navigation,k,noise", [("adjacent", 0, 0.0), ("adjacent", 2, 0.05), ("adjacent", 3, 0.2),
+                                                ("adjacent", 4, 0.1), ("adjacent", 5, 0.3), ("goal", 0, 0.0),
+                                                ("goal", 0, 0.05)])
+def test_coverage_equals_a_rollout_from_every_initiation_state(navigation, k, noise):
+    """SubtaskEnv.coverage (one batched fixed point) against a plain rollout from each initiation state
+    (with goal navigation: each state and goal room): a state counts when the rollout reaches the sub-goal
+    in exactly the planner's distance."""
+    env = envs.make("two_rooms", horizon=300)
+    opts = options_from_graph(env.graph, navigation)
+    tasks = sp.make_tasks(env, opts, navigation=navigation)
     params = sp.task_params(env, tasks, 0.99, {})
-    senv = sp.SubtaskEnv(env, env.horizon)
-    table, nxt, hit = _policy_tables(env, params, k, noise, seed=k)
+    senv = sp.SubtaskEnv(env, env.horizon, n_goals=len(tasks[k].goals))
+    table, nxt, hit = _policy_tables(senv, params, k, noise, seed=k)
     h, w = env.height, env.width
-    goal = int(params.goal_region[k])
 
     def greedy(obs):
         r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
-        return jnp.asarray(table)[r, c, d].reshape(1)
+        g = jnp.argmax(obs[-senv.n_goals:]) if senv.n_goals else 0
+        return jnp.asarray(table)[g, r, c, d].reshape(1)
 
     good = 0
-    for r, c, d in tasks[k].initiation:
+    for r, c, d, g in tasks[k].initiation:
+        goal = int(params.goal_region[k][g])
         s, steps, done = (r, c, d), 0, False
         while not done and steps <= 60:
-            a = table[s]
+            a = table[g][s]
             done = bool(hit[s][a]) or (goal >= 0 and env.graph.cell_region[tuple(nxt[s][a][:2])] == goal)
             s, steps = tuple(nxt[s][a]), steps + 1
-        good += done and steps == params.dist[k][r, c, d]
+        good += done and steps == params.dist[k][g, r, c, d]
     p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
     got = float(jax.jit(senv.coverage, static_argnums=0)(greedy, p))
     assert got == pytest.approx(good / len(tasks[k].initiation), abs=1e-6)
@@ -366,6 +374,35 @@ def test_chained_navigation_reaches_any_room_with_one_subpolicy_per_region():
     assert bool(opts.can_initiate(room0, jnp.zeros(env.n_victims, bool))[to5])
 
 
+def test_goal_navigation_is_one_subpolicy_for_every_room_and_medic():
+    """office, goal navigation: a single navigation task, its goals every room, started anywhere outside
+    the goal room (any facing); every medic's NAVIGATE-TO-R runs it, told R, from every region but R."""
+    env = envs.make("office", horizon=300)
+    opts = options_from_graph(env.graph, "goal")
+    tasks = sp.make_tasks(env, opts, navigation="goal")
+    nav = [t for t in tasks if t.victim < 0]
+    assert len(nav) == 1 and len(tasks) == 1 + env.n_victims
+    task, g = nav[0], env.graph
+    assert task.goals == g.rooms == tuple(opts.region[opts.kind == NAVIGATE]) and task.option == -1
+    victims = {tuple(v) for v in env.layout.victim_pos}
+    for i, room in enumerate(task.goals):
+        rows = task.initiation[task.initiation[:, 3] == i]
+        open_cells = [(r, c) for r, c in np.argwhere((g.cell_region >= 0) & (g.cell_region != room))
+                      if (r, c) not in victims]
+        assert sorted(map(tuple, rows[:, :3].tolist())) == sorted((r, c, d) for r, c in open_cells for d in range(4))
+    table, goals = sp.policy_table(env, opts, tasks, "goal"), sp.option_goals(opts, tasks)
+    hall, room5 = g.index("hall_0"), g.index("room_5")
+    to5 = opts.names.index("NAVIGATE-TO-ROOM-5")
+    assert task.goals[goals[to5]] == room5
+    assert (table[:, :, to5] == 0).all() and (table == table[:, :1]).all()  # the same task in every region
+    assert bool(opts.can_initiate(hall, jnp.zeros(env.n_victims, bool))[to5])
+    assert not bool(opts.can_initiate(room5, jnp.zeros(env.n_victims, bool))[to5])  # not from inside the room
+    triage = np.flatnonzero(opts.kind == TRIAGE)
+    assert (goals[triage] == 0).all() and (table[:, :, triage] >= 1).all()
+    params = sp.task_params(env, tasks, 0.99, {})
+    assert params.dist.shape[:2] == (len(tasks), len(task.goals)) and params.starts.shape[-1] == 4
+
+
 def test_adjacent_navigation_names_a_room_out_of_reach():
     """Rooms in a row, A - B - C: the paper's adjacent sub-policies take the medic in A to B only, so C's victim
     is out of reach (a one-line error naming the room and the fix); chained navigation reaches it by B."""
@@ -390,12 +427,13 @@ def coord_defaults():
     return {"algo": "hierarchical", **coord.DEFAULTS}
 
 
-def test_a_chained_option_runs_across_regions_to_its_room():
+@pytest.mark.parametrize("navigation", ["chained", "goal"])
+def test_a_navigate_option_runs_across_regions_to_its_room(navigation):
     """Over exact sub-policies, one macro step of NAVIGATE-TO-ROOM-5 from inside room_0 ends in room_5, by the
-    hall, within a few steps of the single-medic shortest path."""
+    hall, within a few steps of the single-medic shortest path (chained), or on it (goal-conditioned)."""
     env = envs.make(envs.load_layout("office").subset(agents=[0]), horizon=300)  # one medic: no other option ends it
     cfg = config.CoordinatorConfig(kind="factored")
-    macro, tasks, sub = _oracle_macro(env, "chained", cfg)
+    macro, tasks, sub = _oracle_macro(env, navigation, cfg)
     g = env.graph
     room0, room5 = g.index("room_0"), g.index("room_5")
     _, s = env.reset(None)
@@ -407,7 +445,7 @@ def test_a_chained_option_runs_across_regions_to_its_room():
     assert int(g.cell_region[tuple(np.asarray(s2.agent_pos[0]))]) == room5
     shortest = planning.steps_to_goal(env.layout.blocked, np.full(env.layout.shape, -1, np.int32),
                                       g.cell_region == room5)[tuple(cell) + (int(s.agent_dir[0]),)]
-    assert shortest <= int(info["steps"]) <= shortest + 2
+    assert shortest <= int(info["steps"]) <= shortest + (2 if navigation == "chained" else 0)
 
 
 def test_factored_coordinator_sums_per_medic_heads():

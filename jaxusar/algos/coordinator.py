@@ -114,7 +114,8 @@ class MacroEnv:
     ``policy_for`` int[n_agents, R, O] (or [n_agents, O], the same in every region): which sub-policy
     task executes option o for agent i while it is in region q (-1: none); chained navigation changes
     task as the agent crosses regions. ``subpolicy_act(params, obs) -> action[1]`` runs one sub-policy
-    greedily; ``observe(pos, dir, flag)`` builds its input. ``factored``: the action is the options
+    greedily; ``observe(pos, dir, flag, goal)`` builds its input, ``option_goals`` int[O] (default 0) the
+    goal index each option's sub-policy is told (goal-conditioned navigation). ``factored``: the action is the options
     themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
     ``block_patience`` (0: off): the options also end once an active medic has stood this many steps in a
     row blocked by another (FORWARD into a cell a medic holds). ``cells``: the abstract state also says
@@ -126,8 +127,10 @@ class MacroEnv:
 
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
                  gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
-                 block_patience: int = 0, cells: bool = False, own_termination: bool = False):
+                 block_patience: int = 0, cells: bool = False, own_termination: bool = False,
+                 option_goals: np.ndarray | None = None):
         self.env, self.options = env, options
+        self.option_goals = np.zeros(options.n, np.int32) if option_goals is None else np.asarray(option_goals, np.int32)
         self.n_agents, self.horizon = env.n_agents, env.horizon
         self.n_regions = env.graph.n_regions
         policy_for = np.asarray(policy_for, np.int32)
@@ -221,7 +224,8 @@ class MacroEnv:
             params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
             victim = jnp.asarray(self.options.victim)[o]
             flag = jnp.where(victim >= 0, s.triaged[jnp.maximum(victim, 0)], False)
-            a = self.subpolicy_act(params, self.observe_agent(s.agent_pos[i], s.agent_dir[i], flag))[0]
+            goal = jnp.asarray(self.option_goals)[o]
+            a = self.subpolicy_act(params, self.observe_agent(s.agent_pos[i], s.agent_dir[i], flag, goal))[0]
             acts.append(jnp.where(active[i], a, TRIAGE))
         return jnp.stack(acts).astype(jnp.int32)
 

@@ -4,7 +4,8 @@ For each room region R: NAVIGATE-TO-R (termination: the agent is in R). Its init
 on ``navigation``: ``adjacent`` (the paper, Sec. IV-B): the agent is in a region adjacent to R;
 ``chained``: the agent is in any other region from which R can be reached; the option then runs the
 adjacent-region sub-policies along the region graph's shortest path (``next_hop``; the paper's
-"chaining options", its future work). For each victim v, in room R: TRIAGE-v (initiation: the agent
+"chaining options", its future work); ``goal``: the same initiation set, run by one goal-conditioned
+sub-policy. For each victim v, in room R: TRIAGE-v (initiation: the agent
 is in R and v is not yet triaged; termination: v is triaged). On the two-rooms map this is Table I:
 NAVIGATE-TO-TOP-ROOM, NAVIGATE-TO-BOTTOM-ROOM, TRIAGE-TOP-VICTIM, TRIAGE-BOTTOM-VICTIM.
 
@@ -78,7 +79,7 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
     return hop
 
 
-NAVIGATIONS = ("adjacent", "chained")
+NAVIGATIONS = ("adjacent", "chained", "goal")
 
 
 def options_from_graph(graph: RegionGraph, navigation: str = "adjacent") -> Options:

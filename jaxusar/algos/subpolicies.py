@@ -10,6 +10,10 @@ step, terminal there. Tasks:
   adjacent to X). The coordinator's NAVIGATE-TO-R then starts in any region and runs, region by
   region, the task of the next hop (``policy_table``): at most one task per region, whatever the
   number of medics (never medics x rooms^2).
+* ``goal`` (the issue's other route, measured against ``chained`` in benchmarks/README.md): one
+  goal-conditioned NAVIGATE task for every room, shared by all medics and rooms: its input also holds a
+  one-hot of the goal room, its episodes start anywhere outside the goal room with a goal drawn with
+  the start, and the coordinator's NAVIGATE-TO-R runs it with R as the goal, from any region.
 * ``adjacent`` (the paper, two_rooms' settings): NAVIGATE-TO-R for agent i (the paper trains "each medic
   to each room"), where i's start region is adjacent to R. Half of the training episodes start from
   agent i's start, half anywhere in the option's initiation set (every open cell of the regions adjacent
@@ -24,9 +28,11 @@ step, terminal there. Tasks:
   room", Sec. IV-B) or at the room's entry cells (``entry``: cells next to another region).
 
 Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
-(the task's victim triaged; 0 for NAVIGATE), so all tasks x all trials stack into one vmapped batch;
-the per-task map data (cells blocked, the task's victim, goal, start states, discount, the exact
-distance from every start) travel as env params. The discount is per task (paper Fig. 4f: the
+(the task's victim triaged; 0 for NAVIGATE), and with ``goal`` navigation a one-hot of the goal
+(the first for every other task), so all tasks x all trials stack into one vmapped batch; the per-task
+map data (cells blocked, the task's victim, its goals, start states, discount, the exact distance to
+each goal from every state) travel as env params. A task's states are (row, col, facing, goal index);
+every task but the goal-conditioned one has a single goal, index 0. The discount is per task (paper Fig. 4f: the
 triage-bottom task needed gamma 0.9), stored in each replay row.
 """
 
@@ -51,13 +57,19 @@ SUCCESS_REWARD, STEP_REWARD = 100.0, -1.0
 @dataclasses.dataclass(frozen=True)
 class Task:
     name: str
-    option: int           # the coordinator's option it executes; -1: a hop of chained navigation only
+    option: int           # the coordinator's option it executes; -1: a hop of chained navigation, or goal navigation
     agent: int            # the agent whose start is used (NAVIGATE); -1 = any agent (TRIAGE)
-    starts: np.ndarray    # int32[M, 3] (row, col, dir) training start states
-    test_starts: np.ndarray  # int32[N, 3] greedy-test start states (the paper's single-start test)
-    initiation: np.ndarray   # int32[K, 3] every state the coordinator may start or re-issue the option in
-    region: int           # the region to reach (NAVIGATE), -1 for TRIAGE
+    starts: np.ndarray    # int32[M, 4] (row, col, dir, goal index) training start states
+    test_starts: np.ndarray  # int32[N, 4] greedy-test start states (the paper's single-start test)
+    initiation: np.ndarray   # int32[K, 4] every state the coordinator may start or re-issue the option in
+    region: int           # the region to reach (NAVIGATE), -1 for TRIAGE and goal-conditioned navigation
     victim: int           # the victim to triage (TRIAGE), -1 for NAVIGATE
+    goals: tuple[int, ...] = ()  # goal-conditioned navigation: the region of each goal index
+
+    @property
+    def goal_regions(self) -> tuple[int, ...]:
+        """The region to reach for each goal index (-1: none, a TRIAGE task)."""
+        return self.goals or (self.region,)
 
 
 @struct.dataclass
@@ -66,15 +78,28 @@ class TaskParams:
 
     solid: jax.Array        # bool[H, W]
     victim_at: jax.Array    # int32[H, W]: 0 on the task's victim, -1 elsewhere
-    goal_region: jax.Array  # int32: region to reach, -1 for a triage task
-    starts: jax.Array       # int32[M, 3], padded by repetition
+    goal_region: jax.Array  # int32[G]: the region to reach for each goal index, -1 for a triage task
+    starts: jax.Array       # int32[M, 4] (row, col, dir, goal index), padded by repetition
     n_starts: jax.Array     # int32
-    test_starts: jax.Array  # int32[N, 3], padded by repetition
+    test_starts: jax.Array  # int32[N, 4], padded by repetition
     n_test_starts: jax.Array
-    initiation: jax.Array   # int32[K, 3], padded by repetition
+    initiation: jax.Array   # int32[K, 4], padded by repetition
     n_initiation: jax.Array
-    dist: jax.Array         # int32[H, W, 4]: optimal steps from each state to the sub-goal
+    dist: jax.Array         # int32[G, H, W, 4]: optimal steps from each state to each goal's sub-goal
     gamma: jax.Array        # float32
+
+
+@struct.dataclass
+class SubtaskState:
+    """One agent's team env state in a sub-task, and the goal index it is after."""
+
+    env: EnvState
+    goal: jax.Array  # int32
+
+    agent_pos = property(lambda self: self.env.agent_pos)
+    agent_dir = property(lambda self: self.env.agent_dir)
+    triaged = property(lambda self: self.env.triaged)
+    t = property(lambda self: self.env.t)
 
 
 def _entry_cells(region: np.ndarray, r: int) -> list[tuple[int, int]]:
@@ -88,17 +113,23 @@ def _entry_cells(region: np.ndarray, r: int) -> list[tuple[int, int]]:
     return cells
 
 
+def _states(env: USAREnv, regions: np.ndarray, goal: int = 0) -> np.ndarray:
+    """int32[K, 4]: every open cell of the regions where ``regions`` bool[R] holds (victims' cells aside),
+    any facing, with goal index ``goal``."""
+    region = env.graph.cell_region
+    victims = {tuple(v) for v in env.layout.victim_pos}
+    cells = np.argwhere(regions[np.maximum(region, 0)] & (region >= 0))
+    return np.array([[r, c, d, goal] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+
+
 def _navigation_task(env: USAREnv, name: str, goal: int, option: int, agent: int, navigate_start: str) -> Task:
     """NAVIGATE to region ``goal`` from every open cell of the regions adjacent to it (victims' cells
     aside), any facing; ``agent`` >= 0: training and tests use that medic's start (see the module doc)."""
-    graph, layout = env.graph, env.layout
-    victims = {tuple(v) for v in layout.victim_pos}
-    near = graph.adjacency[:, goal]
-    cells = np.argwhere(near[np.maximum(graph.cell_region, 0)] & (graph.cell_region >= 0))
-    initiation = np.array([[r, c, d] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+    layout = env.layout
+    initiation = _states(env, env.graph.adjacency[:, goal])
     if agent < 0:
         return Task(name, option, agent, initiation, initiation, initiation, goal, -1)
-    start = np.array([[*layout.agent_start[agent], env.start_dir]], np.int32)
+    start = np.array([[*layout.agent_start[agent], env.start_dir, 0]], np.int32)
     starts = initiation if navigate_start == "initiation" else \
         np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
     return Task(name, option, agent, starts, start, initiation, goal, -1)
@@ -116,6 +147,10 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
     set; a NAVIGATE option chains them (``policy_table``). Their number is at most the regions'."""
     layout, graph = env.layout, env.graph
     tasks = []
+    if navigation == "goal":
+        goals = tuple(int(options.region[o]) for o in np.flatnonzero(options.kind == NAVIGATE))
+        initiation = np.concatenate([_states(env, options.starts_from[:, r], g) for g, r in enumerate(goals)])
+        tasks.append(Task("NAVIGATE-TO-ANY-ROOM", -1, -1, initiation, initiation, initiation, -1, -1, goals))
     if navigation == "chained":
         hop = next_hop(graph.adjacency)
         goals = sorted({int(hop[q, r]) for r in graph.rooms for q in range(graph.n_regions) if hop[q, r] >= 0})
@@ -125,7 +160,7 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             tasks.append(_navigation_task(env, name, g, o, -1, navigate_start))
     for o in range(options.n):
         if options.kind[o] == NAVIGATE:
-            if navigation == "chained":
+            if navigation != "adjacent":
                 continue
             for i, (r, c) in enumerate(layout.agent_start):
                 if graph.adjacency[graph.cell_region[r, c], options.region[o]]:
@@ -137,8 +172,8 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             in_room = [tuple(x) for x in np.argwhere(graph.cell_region == room) if tuple(x) != victim_cell]
             cells = in_room if triage_start == "room" else \
                 [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
-            starts = np.array([[r, c, d] for r, c in cells for d in range(4)], np.int32)
-            initiation = np.array([[r, c, d] for r, c in in_room for d in range(4)], np.int32)
+            starts = np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32)
+            initiation = np.array([[r, c, d, 0] for r, c in in_room for d in range(4)], np.int32)
             tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, int(options.victim[o])))
     return tasks
 
@@ -146,8 +181,12 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
 def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: str = "adjacent") -> np.ndarray:
     """int32[n_agents, R, O]: the task whose sub-policy agent i runs for option o while in region q (-1:
     none). ``adjacent``: the agent's own task, wherever it is; ``chained``: NAVIGATE-TO-r runs the task
-    of the next region on the shortest region path from q to r."""
+    of the next region on the shortest region path from q to r; ``goal``: the goal-conditioned task in
+    every region (``option_goals`` says which goal it is after; the options' initiation sets say where
+    they may start), so the table is the same in every region, like the paper's."""
     table = np.full((env.n_agents, env.graph.n_regions, options.n), -1, np.int32)
+    if navigation == "goal":
+        table[:, :, options.kind == NAVIGATE] = next(k for k, t in enumerate(tasks) if t.goals)
     if navigation == "chained":
         hop = next_hop(env.graph.adjacency)
         task_to = {t.region: k for k, t in enumerate(tasks) if t.victim < 0}
@@ -161,6 +200,14 @@ def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: 
     return table
 
 
+def option_goals(options: Options, tasks: list[Task]) -> np.ndarray:
+    """int32[O]: the goal index a sub-policy runs each option with: NAVIGATE-TO-r's room's index in the
+    goal-conditioned task's goals, 0 for every other option (and every option without such a task)."""
+    goals = next((t.goals for t in tasks if t.goals), ())
+    return np.array([goals.index(int(r)) if k == NAVIGATE and goals else 0
+                     for k, r in zip(options.kind, options.region)], np.int32)
+
+
 def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
                task_gamma: dict[str, float]) -> TaskParams:
     """Stacked TaskParams for ``tasks`` (numpy, leading task axis)."""
@@ -172,6 +219,7 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
     layout, region = env.layout, env.graph.cell_region
     pad = lambda a, n: np.concatenate([a, np.repeat(a[:1], n - len(a), 0)])
     width = {k: max(len(getattr(t, k)) for t in tasks) for k in ("starts", "test_starts", "initiation")}
+    n_goals = max(len(t.goal_regions) for t in tasks)
     rows = []
     for t in tasks:
         victim_at = np.full(layout.shape, -1, np.int32)
@@ -179,15 +227,15 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
         if t.victim >= 0:
             cell = tuple(layout.victim_pos[t.victim])
             victim_at[cell], solid[cell] = 0, True
-        goal = t.region
-        dist = planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == goal) if goal >= 0 else None,
-                                      triage=goal < 0)
+        goals = pad(np.asarray(t.goal_regions, np.int32), n_goals)
+        dist = np.stack([planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == g) if g >= 0 else None,
+                                                triage=g < 0) for g in goals])
         for k in ("test_starts", "initiation"):
             states = getattr(t, k)
-            if np.any(dist[states[:, 0], states[:, 1], states[:, 2]] < 0):
+            if np.any(dist[states[:, 3], states[:, 0], states[:, 1], states[:, 2]] < 0):
                 raise ConfigError(f"task {t.name}: its sub-goal cannot be reached from some state of its "
                                   f"{'test starts' if k == 'test_starts' else 'initiation set'}")
-        rows.append(dict(solid=solid, victim_at=victim_at, goal_region=np.int32(goal),
+        rows.append(dict(solid=solid, victim_at=victim_at, goal_region=goals,
                          **{k: pad(getattr(t, k), width[k]) for k in width},
                          **{"n_" + k: np.int32(len(getattr(t, k))) for k in width},
                          dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma))))
@@ -199,27 +247,31 @@ class SubtaskEnv:
 
     n_agents = 1
 
-    def __init__(self, env: USAREnv, horizon: int, features: str = "factored"):
+    def __init__(self, env: USAREnv, horizon: int, features: str = "factored", n_goals: int = 0):
         self.height, self.width = env.height, env.width
         self.horizon = int(horizon)
         self.region = env.graph.cell_region
-        self.features = features
-        self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ())
+        self.features, self.n_goals = features, int(n_goals)
+        self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ()) \
+            + ((self.n_goals,) if self.n_goals else ())
         self.obs_dim = sum(self.obs_blocks)
 
-    def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array) -> jax.Array:
-        """One agent's features (float32[obs_dim]): one-hot row, col, dir, the task's victim flag, and with
-        ``features = "cell"`` a one-hot of the cell. The cell one-hot gives every cell weights of its own,
-        so the Q-function need not be composed from row and column alone (it is fitted to the 1-step
-        precision optimality needs in far fewer updates: benchmarks/README.md)."""
+    def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array, goal: jax.Array = 0) -> jax.Array:
+        """One agent's features (float32[obs_dim]): one-hot row, col, dir, the task's victim flag, with
+        ``features = "cell"`` a one-hot of the cell, and with ``n_goals`` a one-hot of the goal index. The
+        cell one-hot gives every cell weights of its own, so the Q-function need not be composed from row
+        and column alone (it is fitted to the 1-step precision optimality needs in far fewer updates:
+        benchmarks/README.md)."""
         parts = [jax.nn.one_hot(pos[0], self.height), jax.nn.one_hot(pos[1], self.width),
                  jax.nn.one_hot(direction, 4), jnp.asarray(flag, jnp.float32)[None]]
         if self.features == "cell":
             parts.append(jax.nn.one_hot(pos[0] * self.width + pos[1], self.height * self.width))
+        if self.n_goals:
+            parts.append(jax.nn.one_hot(goal, self.n_goals))
         return jnp.concatenate(parts)
 
-    def _obs(self, s: EnvState):
-        return self.observe(s.agent_pos[0], s.agent_dir[0], s.triaged[0])
+    def _obs(self, s: SubtaskState):
+        return self.observe(s.agent_pos[0], s.agent_dir[0], s.triaged[0], s.goal)
 
     def reset(self, key, p: TaskParams):
         return self._start(p.starts[jax.random.randint(key, (), 0, p.n_starts)])
@@ -230,56 +282,66 @@ class SubtaskEnv:
     def _start(self, start):
         s = EnvState(agent_pos=start[None, :2], agent_dir=start[2:3], triaged=jnp.zeros((1,), bool),
                      t=jnp.zeros((), jnp.int32))
+        s = SubtaskState(env=s, goal=start[3])
         return self._obs(s), s
 
-    def _transition(self, pos, direction, action, p: TaskParams):
+    def _transition(self, pos, direction, action, goal, p: TaskParams):
         """One step of the task's rules from one state: (pos int32[2], dir, triaged, success)."""
         pos, d, triaged, _ = apply_actions(p.solid, p.victim_at, pos[None], direction[None], jnp.zeros((1,), bool),
                                            action[None])
-        reached = (p.goal_region >= 0) & (jnp.asarray(self.region)[pos[0, 0], pos[0, 1]] == p.goal_region)
+        target = p.goal_region[goal]
+        reached = (target >= 0) & (jnp.asarray(self.region)[pos[0, 0], pos[0, 1]] == target)
         return pos[0], d[0], triaged[0], reached | triaged[0]
 
-    def step(self, key, s: EnvState, action, p: TaskParams):
-        pos, d, triaged, success = self._transition(s.agent_pos[0], s.agent_dir[0], action[0], p)
-        s = EnvState(agent_pos=pos[None], agent_dir=d[None], triaged=s.triaged | triaged, t=s.t + 1)
+    def step(self, key, s: SubtaskState, action, p: TaskParams):
+        pos, d, triaged, success = self._transition(s.agent_pos[0], s.agent_dir[0], action[0], s.goal, p)
+        env = EnvState(agent_pos=pos[None], agent_dir=d[None], triaged=s.triaged | triaged, t=s.t + 1)
+        s = s.replace(env=env)
         reward = jnp.where(success, SUCCESS_REWARD, 0.0) + STEP_REWARD
         done = success | (s.t >= self.horizon)
         return self._obs(s), s, reward, done, {"terminated": success, "gamma": p.gamma}
 
-    def optimal_steps_from(self, s: EnvState, p: TaskParams) -> jax.Array:
-        return p.dist[s.agent_pos[0, 0], s.agent_pos[0, 1], s.agent_dir[0]]
+    def optimal_steps_from(self, s: SubtaskState, p: TaskParams) -> jax.Array:
+        return p.dist[s.goal, s.agent_pos[0, 0], s.agent_pos[0, 1], s.agent_dir[0]]
 
     def coverage(self, greedy, p: TaskParams) -> jax.Array:
         """float32: the fraction of the task's initiation states from which the greedy policy reaches the
         sub-goal on a shortest path, exactly, in one batched call.
 
         ``greedy(obs float32[obs_dim]) -> action int32[1]``. The policy is evaluated once on every
-        (row, col, dir) of the map; a state is good when its greedy action succeeds, or leads one step
-        closer (by the planner's distance table ``p.dist``) to a good state. Since the distance drops by
-        one along such a chain, iterating to the fixed point (at most max-distance rounds) is exact:
-        a good state's greedy rollout takes exactly ``dist`` steps, and any other state's does not.
+        (row, col, dir) of the map, for each goal index; a state is good when its greedy action succeeds,
+        or leads one step closer (by the planner's distance table ``p.dist``) to a good state. Since the
+        distance drops by one along such a chain, iterating to the fixed point (at most max-distance
+        rounds) is exact: a good state's greedy rollout takes exactly ``dist`` steps, and any other
+        state's does not.
         """
         h, w = self.height, self.width
         rows, cols, dirs = (x.ravel() for x in jnp.meshgrid(jnp.arange(h), jnp.arange(w), jnp.arange(4),
                                                                indexing="ij"))
         pos = jnp.stack([rows, cols], -1)
-        obs = jax.vmap(self.observe)(pos, dirs, jnp.zeros_like(rows, jnp.float32))
-        action = jax.vmap(greedy)(obs)[:, 0]
-        npos, ndir, _, success = jax.vmap(self._transition, in_axes=(0, 0, 0, None))(pos, dirs, action, p)
-        nxt = (npos[:, 0] * w + npos[:, 1]) * 4 + ndir
-        dist = p.dist.reshape(-1)
-        closer = dist[nxt] == dist - 1
 
-        def body(c):
-            good, _ = c
-            new = success | (closer & good[nxt])
-            return new, jnp.any(new != good)
+        def good_for(goal):  # bool[H * W * 4]
+            obs = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(pos, dirs, jnp.zeros_like(rows, jnp.float32), goal)
+            action = jax.vmap(greedy)(obs)[:, 0]
+            npos, ndir, _, success = jax.vmap(self._transition, in_axes=(0, 0, 0, None, None))(pos, dirs, action,
+                                                                                               goal, p)
+            nxt = (npos[:, 0] * w + npos[:, 1]) * 4 + ndir
+            dist = p.dist[goal].reshape(-1)
+            closer = dist[nxt] == dist - 1
 
-        good, _ = jax.lax.while_loop(lambda c: c[1], body, (success, jnp.ones((), bool)))
+            def body(c):
+                good, _ = c
+                new = success | (closer & good[nxt])
+                return new, jnp.any(new != good)
+
+            return jax.lax.while_loop(lambda c: c[1], body, (success, jnp.ones((), bool)))[0]
+
+        n_goals = p.dist.shape[0]
+        good = good_for(0)[None] if n_goals == 1 else jax.lax.map(good_for, jnp.arange(n_goals))  # [G, H*W*4]
         init = p.initiation
         flat = (init[:, 0] * w + init[:, 1]) * 4 + init[:, 2]
         counted = jnp.arange(init.shape[0]) < p.n_initiation
-        return jnp.sum(good[flat] & counted) / p.n_initiation.astype(jnp.float32)
+        return jnp.sum(good[init[:, 3], flat] & counted) / p.n_initiation.astype(jnp.float32)
 
 
 def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
@@ -291,22 +353,24 @@ def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
     return IndependentDQN(env.obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row, obs_blocks=env.obs_blocks)
 
 
-def exact_subpolicies(env: USAREnv, params: TaskParams):
+def exact_subpolicies(senv: SubtaskEnv, params: TaskParams):
     """Exact sub-policies from the planner's distance tables: ``(act, tables)`` with ``tables``
     int32[tasks, H, W, 4] a shortest-path action per state (TRIAGE where it finishes the task) and
-    ``act(table, obs) -> action[1]`` reading (row, col, facing) off a ``SubtaskEnv`` observation. In
+    ``act(table, obs) -> action[1]`` reading (row, col, facing) and the goal index off an observation of
+    ``senv``. In
     ``MacroEnv``'s place of trained ones, they isolate the coordinator (tests, benchmarks/coordinators.py)."""
     tables = []
     for k in range(len(params.dist)):
         nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
                                                                                 jnp.asarray(params.victim_at[k])))
-        after = params.dist[k][nxt[..., 0], nxt[..., 1], nxt[..., 2]]
-        reached = hit | ((params.goal_region[k] >= 0) & (after == 0))
+        after = params.dist[k][:, nxt[..., 0], nxt[..., 1], nxt[..., 2]]  # [G, H, W, 4, actions]
+        reached = hit | ((params.goal_region[k] >= 0)[:, None, None, None, None] & (after == 0))
         tables.append(np.argmin(np.where(reached, -1, np.where(after < 0, 10_000, after)), -1).astype(np.int32))
-    h, w = env.height, env.width
+    h, w, n_goals = senv.height, senv.width, senv.n_goals
 
     def act(table, obs):
         r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
-        return table[r, c, d].reshape(1)
+        goal = jnp.argmax(obs[-n_goals:]) if n_goals else 0  # the goal one-hot is the last block
+        return table[goal, r, c, d].reshape(1)
 
     return act, jnp.asarray(np.stack(tables))

@@ -52,10 +52,11 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                           "coordinator (--set hierarchical.coordinator.kind=factored), linear in the medics")
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
     params = sp.task_params(env, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
-    senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features)
+    n_goals = max(len(t.goals) for t in tasks)  # goal-conditioned navigation: its goals; else 0
+    senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features, n_goals)
     sub_learner = sp.make_learner(senv, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
-    min_steps = int(min(params.dist[k, s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
+    min_steps = int(min(params.dist[k, s[:, 3], s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
                         enumerate(t.starts for t in tasks)))
     sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
                           train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0,
@@ -67,7 +68,8 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
                            factored=c.kind == "factored", block_patience=c.block_patience,
-                           cells=c.features == "cells", own_termination=c.termination == "own")
+                           cells=c.features == "cells", own_termination=c.termination == "own",
+                           option_goals=sp.option_goals(options, tasks))
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
                               optimal_slack=cfg.train.optimal_slack)
@@ -101,10 +103,11 @@ def auto_option_timeout(env, options, tasks, params) -> int:
     longest, region = 0, env.graph.cell_region
     for k, t in enumerate(tasks):
         if t.victim >= 0:
-            longest = max(longest, int(params.dist[k][tuple(t.initiation.T)].max()))
-        elif t.option >= 0:  # a NAVIGATE option's task: its table is the room's distance from anywhere
-            starts = options.starts_from[np.maximum(region, 0), t.region] & (region >= 0)
-            longest = max(longest, int(params.dist[k][starts].max()))
+            longest = max(longest, int(params.dist[k][tuple(t.initiation[:, [3, 0, 1, 2]].T)].max()))
+        elif t.option >= 0 or t.goals:  # a NAVIGATE option's task: its table is the room's distance from anywhere
+            for g, room in enumerate(t.goal_regions):
+                starts = options.starts_from[np.maximum(region, 0), room] & (region >= 0)
+                longest = max(longest, int(params.dist[k][g][starts].max()))
     return max(50, -(-3 * longest // 2))
 
 
@@ -295,7 +298,8 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
                 "coordinator": jax.tree.map(lambda x: np.asarray(x[j]), co["best_params"])}
         (out / "params" / f"trial_{j}.msgpack").write_bytes(serialization.to_bytes(blob))
     # the optimum of a fixed-start task; random-start tasks have one per start (not drawn)
-    opt = [int(b["task_params"].dist[k, t.test_starts[0, 0], t.test_starts[0, 1], t.test_starts[0, 2]])
+    opt = [int(b["task_params"].dist[k, t.test_starts[0, 3], t.test_starts[0, 0], t.test_starts[0, 1],
+                                     t.test_starts[0, 2]])
            if len(t.test_starts) == 1 else -1 for k, t in enumerate(tasks)]
     names = [t.name for t in tasks]
     subpolicy_figure(sub, names, out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
