@@ -18,12 +18,15 @@ steps, the rest of its loop), timed inside the same run.
 
     python benchmarks/vs_sb3.py                          # 8 seeds x 30000 env steps (about 4 minutes)
     python benchmarks/vs_sb3.py --seeds 2 --steps 4000   # smoke run
+    python benchmarks/vs_sb3.py --compile-cache /tmp/jaxusar-xla --out benchmarks/results/vs_sb3_cache.json
+                                                         # jaxusar cold (compiles), then warm (loads programs)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import sys
 import time
@@ -39,6 +42,7 @@ from jaxusar.algos import subpolicies as sp
 from jaxusar.config import DQNConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.train import environment_info
+from jaxusar.experiments.usage import enable_compile_cache
 from train_throughput import update_ceiling
 
 # One setting, applied to both sides: the package's sub-policy settings (configs/hierarchical.yaml),
@@ -190,9 +194,19 @@ def main(argv=None):
     p.add_argument("--gym-backend", choices=("numpy", "jax"), default="numpy",
                    help="SB3's training env: numpy dynamics, or the package's jitted step called every step")
     p.add_argument("--repeats", type=int, default=3, help="jaxusar runs (median wall reported; SB3 runs once)")
+    p.add_argument("--compile-cache", metavar="DIR",
+                   help="JAX's persistent compile cache in DIR, emptied first: the first jaxusar run compiles "
+                        "and writes it (cold), the others load their programs from it (warm; the median of those "
+                        "is the jaxusar row); ratios are given both ways")
     p.add_argument("--skip-sb3", action="store_true")
     p.add_argument("--out", default="benchmarks/results/vs_sb3.json")
     args = p.parse_args(argv)
+    if args.compile_cache:
+        if args.repeats < 2:
+            p.error("--compile-cache needs --repeats >= 2 (one cold run, then warm ones)")
+        shutil.rmtree(args.compile_cache, ignore_errors=True)
+        if enable_compile_cache(folder=args.compile_cache) is None:
+            p.error(f"--compile-cache {args.compile_cache}: the folder cannot be written")
 
     task = ua.navigation_subtask(gamma=MATCHED["gamma"])
     checked = ua.check_gym_matches_jax(task)
@@ -200,7 +214,9 @@ def main(argv=None):
           f"SubtaskEnv on {checked} random steps")
 
     jx_runs = [run_jaxusar(task, args.seeds, args.steps, args.chunk_steps) for _ in range(args.repeats)]
-    jx = sorted(jx_runs, key=lambda r: r["wall_s"])[len(jx_runs) // 2]  # the median run
+    cold = jx_runs[0] if args.compile_cache else None
+    warm = jx_runs[1:] if cold else jx_runs
+    jx = sorted(warm, key=lambda r: r["wall_s"])[len(warm) // 2]  # the median run
     assert all(r["episodes_to_optimal"] == jx["episodes_to_optimal"] for r in jx_runs)  # runs are deterministic
     jx["walls_s"] = [r["wall_s"] for r in jx_runs]
     total = args.seeds * args.steps
@@ -235,6 +251,14 @@ def main(argv=None):
         rows["ratio"] = {"sb3_wall_over_jaxusar_wall": wall / jx["wall_s"],
                          "sb3_train_over_jaxusar_wall": train / jx["wall_s"],
                          "sb3_train_over_jaxusar_run": train / jx["run_s"]}
+        if cold:
+            rows["ratio"]["sb3_wall_over_jaxusar_cold_wall"] = wall / cold["wall_s"]
+    if cold:
+        rows["jaxusar_cold"] = {"wall_s": cold["wall_s"], "run_s": cold["run_s"], "compile_s": cold["compile_s"],
+                                "init_s": cold["init_s"], "us_per_env_step": cold["wall_s"] / total * 1e6,
+                                "s_per_trial": cold["wall_s"] / args.seeds,
+                                "median_episodes_to_optimal": median_or_none(cold["episodes_to_optimal"]),
+                                "trials_optimal": sum(e is not None for e in cold["episodes_to_optimal"])}
 
     import torch
     import stable_baselines3
@@ -243,22 +267,23 @@ def main(argv=None):
                 "torch_threads": sb3[0]["torch_threads"] if sb3 else None}
     result = {"task": ua.SUBTASK, "start": task.start, "optimal_steps": task.optimal_steps, "seeds": args.seeds,
               "env_steps_per_trial": args.steps, "test_every": TEST_EVERY, "gym_backend": args.gym_backend,
-              "jaxusar_repeats": args.repeats, "matched": MATCHED,
+              "jaxusar_repeats": args.repeats, "compile_cache": bool(args.compile_cache), "matched": MATCHED,
               "sb3_settings": {k: v for k, v in sb3_settings(args.steps).items()}, "summary": rows,
               "jaxusar": jx, "sb3": sb3, "environment": env_info}
     print()
     print(f"{args.seeds} trials x {args.steps} env steps, hidden {MATCHED['hidden']}, batch {MATCHED['batch_size']}, "
           f"update every {MATCHED['train_every']} steps")
-    print(f"{'':10} {'wall s':>8} {'s/trial':>8} {'us/env step':>12} {'median eps to opt':>18} {'trials optimal':>15}")
+    print(f"{'':12} {'wall s':>8} {'s/trial':>8} {'us/env step':>12} {'median eps to opt':>18} {'trials optimal':>15}")
     for name, r in rows.items():
         if name == "ratio":
             continue
-        print(f"{name:10} {r['wall_s']:8.1f} {r['s_per_trial']:8.2f} {r['us_per_env_step']:12.1f} "
+        print(f"{name:12} {r['wall_s']:8.1f} {r['s_per_trial']:8.2f} {r['us_per_env_step']:12.1f} "
               f"{str(r['median_episodes_to_optimal']):>18} {r['trials_optimal']:>12}/{args.seeds}")
     if sb3:
         ra = rows["ratio"]
         print(f"ratio SB3 / jaxusar wall: {ra['sb3_wall_over_jaxusar_wall']:.1f}x (SB3 without its tests: "
-              f"{ra['sb3_train_over_jaxusar_wall']:.1f}x; vs jaxusar without compile: {ra['sb3_train_over_jaxusar_run']:.1f}x)")
+              f"{ra['sb3_train_over_jaxusar_wall']:.1f}x; vs jaxusar without compile: {ra['sb3_train_over_jaxusar_run']:.1f}x)"
+              + (f"; against jaxusar's cold run: {ra['sb3_wall_over_jaxusar_cold_wall']:.1f}x" if cold else ""))
         print("SB3 us per env step: " + ", ".join(f"{k} {v:.0f}" for k, v in rows["sb3"]["split_us_per_env_step"].items()))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2, default=float))

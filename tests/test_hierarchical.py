@@ -401,6 +401,9 @@ def test_goal_navigation_is_one_subpolicy_for_every_room_and_medic():
     assert (goals[triage] == 0).all() and (table[:, :, triage] >= 1).all()
     params = sp.task_params(env, tasks, 0.99, {})
     assert params.dist.shape[:2] == (len(tasks), len(task.goals)) and params.starts.shape[-1] == 4
+    one_room = envs.make(envs.parse_layout("A..V\n....", "R r_room room\n---\nRRRR\nRRRR", "one"))
+    opts = options_from_graph(one_room.graph, "goal")  # nowhere to navigate from: triage only
+    assert [t.name for t in sp.make_tasks(one_room, opts, navigation="goal")] == ["TRIAGE-R-VICTIM"]
 
 
 def test_adjacent_navigation_names_a_room_out_of_reach():

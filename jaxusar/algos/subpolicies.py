@@ -119,7 +119,8 @@ def _states(env: USAREnv, regions: np.ndarray, goal: int = 0) -> np.ndarray:
     region = env.graph.cell_region
     victims = {tuple(v) for v in env.layout.victim_pos}
     cells = np.argwhere(regions[np.maximum(region, 0)] & (region >= 0))
-    return np.array([[r, c, d, goal] for r, c in cells if (r, c) not in victims for d in range(4)], np.int32)
+    return np.array([[r, c, d, goal] for r, c in cells if (r, c) not in victims for d in range(4)],
+                    np.int32).reshape(-1, 4)
 
 
 def _navigation_task(env: USAREnv, name: str, goal: int, option: int, agent: int, navigate_start: str) -> Task:
@@ -150,7 +151,8 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
     if navigation == "goal":
         goals = tuple(int(options.region[o]) for o in np.flatnonzero(options.kind == NAVIGATE))
         initiation = np.concatenate([_states(env, options.starts_from[:, r], g) for g, r in enumerate(goals)])
-        tasks.append(Task("NAVIGATE-TO-ANY-ROOM", -1, -1, initiation, initiation, initiation, -1, -1, goals))
+        if len(initiation):  # else a one-region map: nowhere to navigate from
+            tasks.append(Task("NAVIGATE-TO-ANY-ROOM", -1, -1, initiation, initiation, initiation, -1, -1, goals))
     if navigation == "chained":
         hop = next_hop(graph.adjacency)
         goals = sorted({int(hop[q, r]) for r in graph.rooms for q in range(graph.n_regions) if hop[q, r] >= 0})
@@ -185,8 +187,9 @@ def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: 
     every region (``option_goals`` says which goal it is after; the options' initiation sets say where
     they may start), so the table is the same in every region, like the paper's."""
     table = np.full((env.n_agents, env.graph.n_regions, options.n), -1, np.int32)
-    if navigation == "goal":
-        table[:, :, options.kind == NAVIGATE] = next(k for k, t in enumerate(tasks) if t.goals)
+    goal_task = next((k for k, t in enumerate(tasks) if t.goals), None)
+    if navigation == "goal" and goal_task is not None:
+        table[:, :, options.kind == NAVIGATE] = goal_task
     if navigation == "chained":
         hop = next_hop(env.graph.adjacency)
         task_to = {t.region: k for k, t in enumerate(tasks) if t.victim < 0}
