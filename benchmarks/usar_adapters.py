@@ -49,7 +49,8 @@ def navigation_subtask(horizon: int = 300, name: str = SUBTASK, gamma: float = 0
     env = envs.make("two_rooms", horizon=horizon)
     options = options_from_graph(env.graph)
     task = next(t for t in sp.make_tasks(env, options) if t.name == name)
-    task = dataclasses.replace(task, starts=task.test_starts)  # the medic's start only
+    # the medic's start only, in training, tests and the trainer's per-state check (its initiation set)
+    task = dataclasses.replace(task, starts=task.test_starts, initiation=task.test_starts)
     stacked = sp.task_params(env, [task], gamma, {})
     params = jax.tree.map(lambda x: np.asarray(x[0]), stacked)
     start = tuple(int(v) for v in task.test_starts[0, :3])  # (row, col, dir); goal index 0
