@@ -453,6 +453,7 @@ def test_config_errors_name_the_key(sets, match):
     (["hierarchical.coordinator.gradient_steps=0"], r"hierarchical.coordinator.gradient_steps=0 is out of range"),
     (["hierarchical.subpolicy_features=pixels"], r"hierarchical.subpolicy_features='pixels' is out of range"),
     (["hierarchical.navigate_start=anywhere"], r"hierarchical.navigate_start='anywhere' is out of range"),
+    (["hierarchical.navigation=goals"], r"hierarchical.navigation='goals' is out of range.*goal"),
     (["hierarchical.coordinator.termination=first"], r"hierarchical.coordinator.termination='first' is out of range"),
     (["hierarchical.coordinator.features=pixels"], r"hierarchical.coordinator.features='pixels' is out of range"),
     (["hierarchical.coordinator.block_patience=-1"], r"hierarchical.coordinator.block_patience=-1 is out of range"),
