@@ -69,7 +69,8 @@ def subpolicies(seed: int, trials: int, sets: list[str]) -> dict:
         "per_task": {n: {"trials_optimal": int((~np.isnan(eto[:, k])).sum()), "median": med(eto[:, k]),
                          "start_trials_optimal": int((~np.isnan(start_eto[:, k])).sum()),
                          "start_median": med(start_eto[:, k]),
-                         "coverage_worst": float(cov[:, k].min()), "coverage_mean": float(cov[:, k].mean())}
+                         "coverage_worst": float(cov[:, k].min()), "coverage_mean": float(cov[:, k].mean()),
+                         "episodes_to_optimal": [None if np.isnan(e) else int(e) for e in eto[:, k]]}
                      for k, n in enumerate(names)},
         "trials_all_optimal": int((~np.isnan(sums)).sum()), "sum_median": med(sums),
         "coverage_worst": float(cov.min()), "wall_seconds": round(wall, 1),

@@ -5,11 +5,14 @@ trained or allocated), split into the parts that grow with the run: replay rows,
 with their target copy and optimizer, the kept best params and the chunk's param snapshots, the
 learning curves, and the rest (env state, counters). Also the bytes one replay row takes, and what it
 took before observations were stored as one-hot indices (format 1: uint8 features, obs and next_obs).
-XLA's own buffers (a chunk's temporaries, the compiled programs) are not in these shapes: compare the
-total with the peak RSS ``jaxusar reproduce`` records in results.json (``usage``).
+With ``--temporaries`` each trainer's chunk is also compiled (not run) and XLA's own account of it is
+added: the temporary buffers a chunk needs beside its state (``memory_analysis``). The compiled code and
+the interpreter are not in either: compare the total with the peak RSS ``jaxusar reproduce`` records in
+results.json (``usage``).
 
     python benchmarks/memory.py --trials 64            # the full reproduction's trainers
     python benchmarks/memory.py --trials 32 --quick    # reproduce --quick
+    python benchmarks/memory.py --trials 64 --temporaries
 """
 
 from __future__ import annotations
@@ -55,7 +58,12 @@ def row_bytes(state, dqn) -> tuple[int, int]:
     return now, now + (0 if dqn.codec is None else 2 * (dqn.obs_dim - codes))
 
 
-def measure(trials: int, quick: bool) -> dict:
+def temporaries(trainer, state) -> int:
+    """Bytes of the temporary buffers XLA allocates for one chunk of ``state``'s shapes (compiled, not run)."""
+    return jax.jit(trainer._run_chunk, donate_argnums=0).lower(state).compile().memory_analysis().temp_size_in_bytes
+
+
+def measure(trials: int, quick: bool, temps: bool = False) -> dict:
     cfgs = reproduce.configs(quick)
     keys = train.trial_keys(cfgs["iql"].seed, trials)
     out = {}
@@ -71,8 +79,11 @@ def measure(trials: int, quick: bool) -> dict:
                 state = previous = jax.eval_shape(stage.trainer.init, stage.keys, env_params)
                 learner = stage.trainer.learner
                 now, before = row_bytes(state, getattr(learner, "dqn", None) or learner.critic)
+                mb = parts(state)
+                if temps:
+                    mb["chunk temporaries (XLA)"] = temporaries(stage.trainer, state)
                 out[stage.name] = {"lanes": int(len(stage.keys)), "row_bytes": now, "row_bytes_format1": before,
-                                   "mb": {k: round(v / MB, 1) for k, v in parts(state).items()}}
+                                   "mb": {k: round(v / MB, 1) for k, v in mb.items()}}
     return out
 
 
@@ -80,17 +91,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--quick", action="store_true", help="reproduce --quick's budgets")
+    ap.add_argument("--temporaries", action="store_true", help="also compile each chunk for XLA's temporary buffers")
     args = ap.parse_args()
     if args.trials < 1:
         ap.error(f"--trials must be >= 1, got {args.trials}")
-    rows = measure(args.trials, args.quick)
+    rows = measure(args.trials, args.quick, args.temporaries)
     print(f"jaxusar reproduce{' --quick' if args.quick else ''} --trials {args.trials}: trainer states (MiB)")
     print(f"{'trainer':28s} {'lanes':>5s} {'row B':>6s} {'fmt1 B':>6s}  " + "  ".join(next(iter(rows.values()))["mb"]))
     for name, r in rows.items():
         print(f"{name:28s} {r['lanes']:5d} {r['row_bytes']:6d} {r['row_bytes_format1']:6d}  "
               + "  ".join(f"{v:>{len(k)}.1f}" for k, v in r["mb"].items()))
     total = sum(sum(r["mb"].values()) for r in rows.values())
-    print(f"all trainers' states together: {total:.0f} MiB")
+    print(f"all trainers' states{' and chunk temporaries' if args.temporaries else ''} together: {total:.0f} MiB")
     print(json.dumps(rows))
 
 

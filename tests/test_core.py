@@ -546,3 +546,16 @@ def test_one_hot_input_layer_is_the_dense_layer():
                                 atol=1e-6)
     with pytest.raises(ValueError, match="one_hot_input needs"):
         ql.DQN(sum(sizes), 4, config.DQNConfig(one_hot_input=True), None)
+
+
+def test_uniform_row_is_the_row_jax_random_uniform_draws_bit_for_bit():
+    """The trainer draws an iteration's update noise alone (``uniform_row``); it must be exactly the row of
+    the whole chunk's ``jax.random.uniform`` (the numbers before this was a memory saving), for raw and typed
+    keys and any row, else every result on the default seeds would move."""
+    from jaxusar.core.trainer import uniform_row
+
+    for key in (jax.random.PRNGKey(7), jax.random.fold_in(jax.random.PRNGKey(0), 3), jax.random.key(11)):
+        full = jax.random.uniform(key, (6, 2, 3, 5))
+        for row in (0, 1, 5):
+            got = jax.jit(uniform_row, static_argnums=1)(key, (2, 3, 5), jnp.uint32(row))
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(full[row]))

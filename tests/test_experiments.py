@@ -2,6 +2,7 @@
 
 import csv
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -209,6 +210,32 @@ def test_an_unwritable_compile_cache_folder_is_a_warning(tmp_path):
         assert enable_compile_cache(folder=tmp_path / "a_file" / "xla") is None
     assert jax.config.jax_compilation_cache_dir == before  # untouched: the run goes on as before
     assert enable_compile_cache(enabled=False) is None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim")
+def test_release_memory_hands_freed_heap_back_to_the_system():
+    """Freed heap blocks between live ones stay resident under glibc until trimmed (what an XLA compile
+    leaves behind); ``release_memory`` must return them, or a run's peak stacks on its garbage."""
+    import ctypes
+
+    from jaxusar.experiments import usage
+
+    def rss_mb():
+        return int(next(line for line in open("/proc/self/status") if line.startswith("VmRSS")).split()[1]) / 1024
+
+    libc, size = ctypes.CDLL("libc.so.6"), 64 << 10  # below glibc's mmap threshold: from the heap
+    libc.malloc.restype, libc.free.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
+    blocks = [libc.malloc(size) for _ in range(3000)]
+    for b in blocks:
+        ctypes.memset(b, 1, size)  # resident
+    for b in blocks[::2]:
+        libc.free(b)  # 94 MiB of holes between live blocks: glibc keeps them
+    before = rss_mb()
+    usage.release_memory()
+    after = rss_mb()
+    for b in blocks[1::2]:
+        libc.free(b)
+    assert before - after > 60, (before, after)
 
 
 def test_a_second_run_loads_its_programs_and_a_corrupted_cache_is_a_warning(tmp_path):

@@ -99,6 +99,32 @@ def test_checkpoint_round_trip_is_atomic_and_checks_shapes(tmp_path):
         checkpoint.load(tmp_path / "bad.ckpt", tree)
 
 
+def test_a_checkpoint_is_written_array_by_array_and_one_from_the_previous_container_still_loads(tmp_path):
+    """Format 3 stores each leaf as its own .npy in a zip (no second copy of the state while saving); a
+    format-2 file (the same leaves in one msgpack message) still resumes."""
+    import zipfile
+
+    from flax import serialization
+
+    tree = {"w": jnp.arange(6, dtype=jnp.float32).reshape(2, 3), "n": jnp.uint8(7)}
+    path = tmp_path / "s.ckpt"
+    checkpoint.save(path, tree, {"chunk": 2})
+    with zipfile.ZipFile(path) as z:
+        assert sorted(z.namelist()) == ["leaves/0.npy", "leaves/1.npy", "meta.json"]
+    assert checkpoint.read_meta(path) == {"chunk": 2}
+    old = tmp_path / "old.ckpt"
+    old.write_bytes(serialization.msgpack_serialize(
+        {"format": 2, "meta": {"chunk": 5}, "leaves": {str(i): np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}}))
+    for p, chunk in ((path, 2), (old, 5)):
+        got, meta = checkpoint.load(p, jax.eval_shape(lambda: tree))
+        assert meta == {"chunk": chunk} and got["n"].dtype == np.uint8
+        np.testing.assert_array_equal(got["w"], tree["w"])
+    with zipfile.ZipFile(tmp_path / "other.ckpt", "w") as z:
+        z.writestr("meta.json", '{"meta": {}}')
+    with pytest.raises(CheckpointError, match="not a jaxusar checkpoint"):
+        checkpoint.load(tmp_path / "other.ckpt", tree)
+
+
 def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
     """Resuming with other settings (here: another fingerprint) would mix two runs: refused, by name."""
     from jaxusar import config

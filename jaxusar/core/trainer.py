@@ -17,8 +17,10 @@ The conditions of every ``lax.cond`` are scalars equal across trials, so vmap ne
 selects that run both branches (DESIGN.md). Greedy tests are evaluated from parameter snapshots in
 batched calls, when ``n_slots`` snapshots have piled up and at the chunk's end (a per-trial test
 inside the step would run on every step); the few slots bound the snapshots' memory at any chunk size.
-All randomness of a chunk is drawn up front from ``fold_in(trial_key, chunk_index)``, so a trial's
-numbers do not depend on which other trials run beside it.
+All randomness of a chunk comes from ``fold_in(trial_key, chunk_index)``, so a trial's numbers do not
+depend on which other trials run beside it: the acting noise is drawn up front, the update noise (a
+batch of uniforms per update) one iteration at a time (``uniform_row``: the same numbers, without
+holding them all).
 
 An env may take per-trial parameters (gymnax style: ``reset(key, params)``, ``step(key, state,
 action, params)``): the sub-policy tasks of the paper's method are one batch of such trials. An env
@@ -50,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.extend.random import threefry2x32_p
 
 from jaxusar.config import ConfigError, TrainConfig
 
@@ -109,6 +112,21 @@ class TrainState:
     chunk: jax.Array          # chunks run so far
 
 
+def uniform_row(key: jax.Array, shape: tuple, row) -> jax.Array:
+    """Row ``row`` of ``jax.random.uniform(key, (n, *shape))`` (any n), without drawing the other rows.
+
+    JAX's threefry bits (``jax_threefry_partitionable``, the default) hash each element's flat index, and
+    uniform keeps a float's mantissa bits: both are reproduced here for the indices of one row, bit for bit
+    (tests/test_core.py compares them with ``jax.random.uniform``, so a JAX that draws otherwise fails there).
+    The whole array must hold fewer than 2^32 numbers."""
+    size = math.prod(shape)
+    lo = jnp.asarray(row, jnp.uint32) * jnp.uint32(size) + jnp.arange(size, dtype=jnp.uint32)
+    data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
+    b1, b2 = threefry2x32_p.bind(data[0], data[1], jnp.zeros_like(lo), lo)
+    mantissa = ((b1 ^ b2) >> jnp.uint32(9)) | jnp.uint32(0x3F800000)  # float32: 23 mantissa bits, exponent of 1.0
+    return (jax.lax.bitcast_convert_type(mantissa, jnp.float32) - 1.0).reshape(shape)
+
+
 def _steps_of(info) -> jax.Array:
     """Primitive steps an env step took (an SMDP env reports ``steps``; a plain env takes 1)."""
     return info.get("steps", jnp.ones((), jnp.int32)) if isinstance(info, dict) else jnp.ones((), jnp.int32)
@@ -150,6 +168,9 @@ class Trainer:
         self.chunk_steps = self.iters * train_every
         self.n_tests = cfg.episodes // cfg.test_every
         self.n_slots = min(self.iters, MAX_SNAPSHOT_SLOTS)
+        if any(self.iters * self.gradient_steps * math.prod(shape) >= 2 ** 32 for shape in learner.update_noise.values()):
+            raise ConfigError(f"a chunk of {self.chunk_steps} steps draws 2^32 or more update numbers per trial; "
+                              "lower train.chunk_steps")
         self.has_coverage = hasattr(env, "coverage")
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
         self._lanes_chunk = jax.jit(self._run_lanes, donate_argnums=0)
@@ -208,7 +229,9 @@ class Trainer:
 
     # -- one chunk ------------------------------------------------------------------------------
     def _noise(self, trials: TrialState, chunk):
-        """This chunk's uniforms, shaped [iters, train_every, trials, ...] and [iters, gradient_steps, trials, ...]."""
+        """This chunk's acting uniforms, shaped [iters, train_every, trials, ...], and its update keys, one per
+        name of ``learner.update_noise`` (uint32[trials, names, 2]): ``_update_noise`` draws an iteration's
+        update uniforms from them (the update noise, batch-sized per lane-step, is most of a chunk's noise)."""
 
         def per_trial(key):
             key = jax.random.fold_in(key, chunk)
@@ -216,14 +239,22 @@ class Trainer:
             act = {name: jax.random.uniform(jax.random.fold_in(k_act, i), (self.iters, self.train_every, *shape))
                    for i, (name, shape) in enumerate(sorted(self.learner.act_noise.items()))}
             act["reset_key"] = jax.random.split(k_reset, (self.iters, self.train_every))
-            upd = {name: jax.random.uniform(jax.random.fold_in(k_upd, i), (self.iters, self.gradient_steps, *shape))
-                   for i, (name, shape) in enumerate(sorted(self.learner.update_noise.items()))}
+            upd = jnp.stack([jax.random.fold_in(k_upd, i) for i in range(len(self.learner.update_noise))]
+                            or [k_upd])
             return act, upd
 
-        act, upd = jax.vmap(per_trial)(trials.key)
-        act = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), act)
-        upd = jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), upd)
-        return act, upd
+        act, upd_keys = jax.vmap(per_trial)(trials.key)
+        return jax.tree.map(lambda x: jnp.moveaxis(x, 0, 2), act), upd_keys
+
+    def _update_noise(self, upd_keys, iteration):
+        """Iteration ``iteration``'s update uniforms, [gradient_steps, trials, ...]: row ``iteration`` of
+        ``uniform(key, (iters, gradient_steps, *shape))`` per trial and name, computed alone (``uniform_row``),
+        so a chunk never holds all its iterations' noise (0.75 GiB for 192 sub-policy lanes)."""
+        def per_trial(keys):
+            return {name: uniform_row(keys[i], (self.gradient_steps, *shape), iteration)
+                    for i, (name, shape) in enumerate(sorted(self.learner.update_noise.items()))}
+
+        return jax.tree.map(lambda x: jnp.moveaxis(x, 0, 1), jax.vmap(per_trial)(upd_keys))
 
     def _env_step(self, s: TrialState, noise, step) -> TrialState:
         lrn, cfg = self.learner, self.cfg
@@ -346,18 +377,18 @@ class Trainer:
         return trials.replace(snaps=Snapshots(snaps.params, jnp.full_like(snaps.test_index, NO_TEST),
                                               jnp.zeros_like(snaps.count)))
 
-    def _learn(self, learner, noise):
-        """``gradient_steps`` updates of every trial's learner, one per slice of ``noise``."""
+    def _learn(self, learner, upd_keys, iteration):
+        """``gradient_steps`` updates of every trial's learner, one per slice of the iteration's noise."""
         step = lambda l, u: (jax.vmap(self.learner.update)(l, u), None)
-        return jax.lax.scan(step, learner, noise)[0]
+        return jax.lax.scan(step, learner, self._update_noise(upd_keys, iteration), length=self.gradient_steps)[0]
 
     def _run_chunk(self, state: TrainState) -> TrainState:
-        act_noise, upd_noise = self._noise(state.trials, state.chunk)
+        act_noise, upd_keys = self._noise(state.trials, state.chunk)
         vstep = jax.vmap(self._env_step, in_axes=(0, 0, None))
 
         def iteration(carry, noise):
             trials, step = carry
-            act, upd = noise
+            act, i = noise
 
             def inner(c, n):
                 t, k = c
@@ -368,10 +399,12 @@ class Trainer:
                                   jax.vmap(self._snapshot), lambda t: t, trials)
             # one snapshot per trial per iteration at most (checked in __init__), so none is ever lost
             trials = jax.lax.cond(jnp.max(trials.snaps.count) >= self.n_slots, self._evaluate, lambda t: t, trials)
-            learner = jax.lax.cond(step >= self.learning_starts, self._learn, lambda l, _: l, trials.learner, upd)
+            learner = jax.lax.cond(step >= self.learning_starts, self._learn, lambda l, *_: l, trials.learner,
+                                   upd_keys, i)
             return (trials.replace(learner=learner), step), None
 
-        (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step), (act_noise, upd_noise))
+        (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step),
+                                         (act_noise, jnp.arange(self.iters, dtype=jnp.uint32)))
         return TrainState(trials=self._evaluate(trials), step=step, chunk=state.chunk + 1)
 
     def _run_lanes(self, state: TrainState, lanes: jax.Array) -> TrainState:

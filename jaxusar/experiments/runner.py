@@ -30,6 +30,7 @@ import jax
 
 from jaxusar.core import Trainer, checkpoint
 from jaxusar.core.checkpoint import CheckpointError
+from jaxusar.experiments.usage import release_memory
 
 
 @dataclasses.dataclass
@@ -47,7 +48,8 @@ class Outcome:
     run_seconds: float         # chunks, summed over every session that worked on this stage
     chunks: int
     resumed_from_chunk: int | None  # the checkpoint's chunk when this session resumed it, else None
-    state: Any = dataclasses.field(default=None, repr=False)  # final TrainState (this process's lanes)
+    state: Any = dataclasses.field(default=None, repr=False)  # final TrainState of this process's lanes, but
+    # for what results read (``light``): a finished stage's replay is not held while the next stages run
 
 
 class Runner:
@@ -103,11 +105,12 @@ class Runner:
                     f"{self.fingerprint}); pass --force to start over")
             resumed = int(meta["chunk"])
             if meta["finished"]:
-                return Outcome(trainer.results(state), 0.0, meta["run_seconds"], resumed, resumed, state)
+                return Outcome(trainer.results(state), 0.0, meta["run_seconds"], resumed, resumed, light(state))
         else:
             state = trainer.init(stage.keys, env_params)
         state = trainer.place(state, self.devices)
         trainer.compile(state)
+        release_memory()
         compile_seconds = time.perf_counter() - start
         earlier_run, run_start = meta["run_seconds"], time.perf_counter()
         last_save = run_start
@@ -121,28 +124,34 @@ class Runner:
         def on_chunk(s):
             # JAX dispatches a chunk asynchronously: ``done`` reads its results, so it has run before the clock
             # is read (read first, the clock said a checkpoint was due when the previous chunk had taken long)
-            if not trainer.done(s) and time.perf_counter() - last_save >= self.checkpoint_every:
+            finished = trainer.done(s)
+            release_memory()  # what the chunk freed (a smaller batch's first chunk also compiles its program)
+            if not finished and time.perf_counter() - last_save >= self.checkpoint_every:
                 save(s)
 
         progress = None if self.progress is None else (lambda info: self.progress(stage.name, info))
         state = trainer.train(stage.keys, progress=progress, state=state, on_chunk=on_chunk)
         save(state, finished=True)
-        return Outcome(trainer.results(state), compile_seconds, meta["run_seconds"], int(state.chunk), resumed, state)
+        return Outcome(trainer.results(state), compile_seconds, meta["run_seconds"], int(state.chunk), resumed,
+                       light(state))
+
+
+def light(state):
+    """``state`` with only what ``Trainer.results`` reads (no learner, replay, snapshots or env state)."""
+    return state.replace(trials=state.trials.replace(learner=None, snaps=None, actor=None, env_state=None, obs=None,
+                                                     env_params=None))
 
 
 def gather(outcomes: dict[str, Outcome], stages: dict[str, Stage]) -> dict[str, Outcome]:
     """With several processes: every stage's results over all processes' lanes, in process order
-    (a no-op in one process). Only what ``Trainer.results`` reads is sent, not replay buffers."""
+    (a no-op in one process). Only what ``Trainer.results`` reads is sent (``Outcome.state`` is ``light``)."""
     if jax.process_count() == 1:
         return outcomes
     from jax.experimental import multihost_utils
 
     out = {}
     for name, o in outcomes.items():
-        t = o.state.trials
-        light = o.state.replace(trials=t.replace(learner=None, snaps=None, actor=None, env_state=None, obs=None,
-                                                 env_params=None))
-        full = multihost_utils.process_allgather(light, tiled=True)
+        full = multihost_utils.process_allgather(o.state, tiled=True)
         out[name] = dataclasses.replace(o, results=stages[name].trainer.results(full), state=None)
     return out
 
