@@ -239,8 +239,8 @@ class Trainer:
             act = {name: jax.random.uniform(jax.random.fold_in(k_act, i), (self.iters, self.train_every, *shape))
                    for i, (name, shape) in enumerate(sorted(self.learner.act_noise.items()))}
             act["reset_key"] = jax.random.split(k_reset, (self.iters, self.train_every))
-            upd = jnp.stack([jax.random.fold_in(k_upd, i) for i in range(len(self.learner.update_noise))]
-                            or [k_upd])
+            names = range(len(self.learner.update_noise))  # no names: one unused key keeps the shapes
+            upd = jnp.stack([jax.random.fold_in(k_upd, i) for i in names] or [k_upd])
             return act, upd
 
         act, upd_keys = jax.vmap(per_trial)(trials.key)
