@@ -119,10 +119,11 @@ def test_a_checkpoint_is_written_array_by_array_and_one_from_the_previous_contai
         got, meta = checkpoint.load(p, jax.eval_shape(lambda: tree))
         assert meta == {"chunk": chunk} and got["n"].dtype == np.uint8
         np.testing.assert_array_equal(got["w"], tree["w"])
-    with zipfile.ZipFile(tmp_path / "other.ckpt", "w") as z:
-        z.writestr("meta.json", '{"meta": {}}')
-    with pytest.raises(CheckpointError, match="not a jaxusar checkpoint"):
-        checkpoint.load(tmp_path / "other.ckpt", tree)
+    for head in ('{"meta": {}}', '{"format": 3}'):  # no format, no meta
+        with zipfile.ZipFile(tmp_path / "other.ckpt", "w") as z:
+            z.writestr("meta.json", head)
+        with pytest.raises(CheckpointError, match="not a jaxusar checkpoint"):
+            checkpoint.load(tmp_path / "other.ckpt", tree)
 
 
 def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):

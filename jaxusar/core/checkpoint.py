@@ -72,26 +72,33 @@ class _Source:
     def __init__(self, path: Path):
         self.path, self.zip, self.payload = path, None, None
         try:
-            if zipfile.is_zipfile(path):
-                self.zip = zipfile.ZipFile(path)
-                head = json.loads(self.zip.read("meta.json"))
+            self.meta = self._check(self._head())
+        except BaseException:
+            self.close()
+            raise
+
+    def _head(self) -> dict:
+        """The file's format and meta (and, for format 2, its whole payload); sets ``count``."""
+        try:
+            if zipfile.is_zipfile(self.path):
+                self.zip = zipfile.ZipFile(self.path)
                 self.count = sum(name.startswith("leaves/") for name in self.zip.namelist())
-            else:
-                head = self.payload = serialization.msgpack_restore(path.read_bytes())
-                self.count = len(head.get("leaves", ())) if isinstance(head, dict) else 0
+                return json.loads(self.zip.read("meta.json"))
+            head = self.payload = serialization.msgpack_restore(self.path.read_bytes())
+            self.count = len(head.get("leaves", ())) if isinstance(head, dict) else 0
+            return head
         except (OSError, ValueError, TypeError, KeyError, zipfile.BadZipFile) as err:
-            self.close()
-            raise CheckpointError(f"{path}: unreadable checkpoint ({err})") from None
-        if not isinstance(head, dict) or "format" not in head:
-            self.close()
-            raise CheckpointError(f"{path}: not a jaxusar checkpoint")
+            raise CheckpointError(f"{self.path}: unreadable checkpoint ({err})") from None
+
+    def _check(self, head) -> dict:
+        if not isinstance(head, dict) or "format" not in head or "meta" not in head:
+            raise CheckpointError(f"{self.path}: not a jaxusar checkpoint")
         if head["format"] not in READABLE:
-            self.close()
             raise CheckpointError(
-                f"{path}: a checkpoint of format {head['format']}, written by another jaxusar (this one reads "
+                f"{self.path}: a checkpoint of format {head['format']}, written by another jaxusar (this one reads "
                 f"formats {', '.join(map(str, READABLE))}: replay rows store observations compactly since format "
                 "2); it cannot be resumed, pass --force to start over")
-        self.meta = head["meta"]
+        return head["meta"]
 
     def leaf(self, i: int) -> np.ndarray:
         try:
