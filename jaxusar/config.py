@@ -191,6 +191,11 @@ class HierarchicalConfig:
     navigate_start: str = _field("mixed", lambda s: s in ("mixed", "initiation"),
                                  "navigation tasks start half at the medic's start and half anywhere in the "
                                  "initiation set (mixed), or anywhere in it (initiation)")
+    focus_starts: float = _field(0.5, _unit_interval,
+                                 "the fraction of sub-policy training episodes, in [0, 1], that start at an "
+                                 "initiation state from which the latest test's greedy policy was not optimal, while "
+                                 "there is one (0: every start as navigate_start and triage_start say; 0.5: chosen on "
+                                 "tuning seed 1000, benchmarks/README.md)")
     navigation: str = _field("chained", lambda s: s in ("adjacent", "chained", "goal"),
                              "adjacent (the paper: a sub-policy per medic and room next to its start region), "
                              "chained (a sub-policy per region, shared by the medics; NAVIGATE to any room chains "

@@ -443,6 +443,8 @@ def test_config_errors_name_the_key(sets, match):
     (["dqn.train_every=0"], r"dqn.train_every=0 is out of range \(.*>= 1"),
     (["dqn.tau=0"], r"dqn.tau=0.0 is out of range \(in \(0, 1\]"),
     (["dqn.tau=1.5"], r"dqn.tau=1.5 is out of range \(in \(0, 1\]"),
+    (["hierarchical.focus_starts=1.5"], r"hierarchical.focus_starts=1.5 is out of range \(.*in \[0, 1\]"),
+    (["hierarchical.focus_starts=-0.1"], r"hierarchical.focus_starts=-0.1 is out of range"),
     (["dqn.reward_scale=0"], r"dqn.reward_scale=0.0 is out of range \(> 0"),
     (["dqn.reward_scale=-1"], r"dqn.reward_scale=-1.0 is out of range"),
     (["dqn.lr=0"], r"dqn.lr=0.0 is out of range \(Adam learning rate, > 0"),

@@ -10,6 +10,7 @@ from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
 from jaxusar.config import ConfigError
+from jaxusar.algos import defaults as algos_defaults
 from jaxusar.experiments.hierarchical import auto_option_timeout
 
 THREE_ROOMS = """
@@ -314,7 +315,7 @@ def _policy_tables(senv, params, k, noise: float, seed: int):
 def test_coverage_equals_a_rollout_from_every_initiation_state(navigation, k, noise):
     """SubtaskEnv.coverage (one batched fixed point) against a plain rollout from each initiation state
     (with goal navigation: each state and goal room): a state counts when the rollout reaches the sub-goal
-    in exactly the planner's distance."""
+    in exactly the planner's distance; and which states count, state by state."""
     env = envs.make("two_rooms", horizon=300)
     opts = options_from_graph(env.graph, navigation)
     tasks = sp.make_tasks(env, opts, navigation=navigation)
@@ -328,7 +329,7 @@ def test_coverage_equals_a_rollout_from_every_initiation_state(navigation, k, no
         g = jnp.argmax(obs[-senv.n_goals:]) if senv.n_goals else 0
         return jnp.asarray(table)[g, r, c, d].reshape(1)
 
-    good = 0
+    good = []
     for r, c, d, g in tasks[k].initiation:
         goal = int(params.goal_region[k][g])
         s, steps, done = (r, c, d), 0, False
@@ -336,11 +337,65 @@ def test_coverage_equals_a_rollout_from_every_initiation_state(navigation, k, no
             a = table[g][s]
             done = bool(hit[s][a]) or (goal >= 0 and env.graph.cell_region[tuple(nxt[s][a][:2])] == goal)
             s, steps = tuple(nxt[s][a]), steps + 1
-        good += done and steps == params.dist[k][g, r, c, d]
+        good.append(done and steps == params.dist[k][g, r, c, d])
     p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
-    got = float(jax.jit(senv.coverage, static_argnums=0)(greedy, p))
-    assert got == pytest.approx(good / len(tasks[k].initiation), abs=1e-6)
+    got, states = jax.jit(senv.coverage, static_argnums=0)(greedy, p)
+    assert float(got) == pytest.approx(np.mean(good), abs=1e-6)
+    n = len(good)
+    assert list(np.asarray(states[:n])) == good and not np.asarray(states[n:]).any()  # padding never counts
+    got = float(got)
     assert (got == 1.0) == (noise == 0.0)  # exact everywhere, and the noisy tables miss some states
+
+
+def test_focus_starts_draw_from_the_states_the_last_test_failed(two_rooms):
+    """``focus``: that fraction of starts is drawn uniformly from ``weak`` (the initiation states the last test
+    was not optimal from), the rest as the task says; no weak state, or focus 0, draws as the task says."""
+    env, opts = two_rooms
+    tasks = sp.make_tasks(env, opts, navigate_start="mixed")
+    params = sp.task_params(env, tasks, 0.99, {})
+    k = 0  # agent0's navigation: half its starts are the medic's start
+    p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+    init = np.asarray(p.initiation)
+    good = np.ones(len(init), bool)
+    good[[5, 17]] = False
+    keys = jax.random.split(jax.random.PRNGKey(0), 4000)
+    starts = lambda senv, p: np.asarray(jax.vmap(senv.reset, in_axes=(0, None))(keys, p)[1].agent_pos[:, 0])
+
+    full, half, none = (sp.SubtaskEnv(env, 50, focus=f) for f in (1.0, 0.5, 0.0))
+    weak = full.refocus(p, jnp.asarray(good))
+    assert np.flatnonzero(np.asarray(weak.weak)).tolist() == [5, 17]
+    got = starts(full, weak)
+    assert {tuple(x) for x in got} == {tuple(init[5, :2]), tuple(init[17, :2])}
+    from_weak = np.mean([tuple(x) in {tuple(init[5, :2]), tuple(init[17, :2])} for x in starts(half, weak)])
+    assert 0.5 < from_weak < 0.56  # half drawn there, plus the uniform half's few hits
+    assert not np.asarray(full.refocus(p, jnp.ones(len(init), bool)).weak).any()
+    mixed = starts(full, p)  # nothing weak: the task's own starts, half of them the medic's
+    assert 0.45 < np.mean((mixed == env.layout.agent_start[0]).all(1)) < 0.55
+    # focus 0 draws exactly as before focus existed
+    old = np.asarray(jax.vmap(lambda key: p.starts[jax.random.randint(key, (), 0, p.n_starts)])(keys))[:, :2]
+    np.testing.assert_array_equal(starts(none, weak), old)
+    # padding never becomes weak: triage tasks pad their initiation states to the navigation tasks' count
+    kt = [t.name for t in tasks].index("TRIAGE-BOTTOM-VICTIM")
+    pt = jax.tree.map(lambda x: jnp.asarray(x[kt]), params)
+    assert int(full.refocus(pt, jnp.zeros(pt.initiation.shape[0], bool)).weak.sum()) == len(tasks[kt].initiation)
+
+
+def test_trainer_refocuses_on_the_latest_test():
+    """After training, a lane's weak states are exactly what its latest test's coverage missed."""
+    cfg = config.load(None, ["train.episodes=40", "train.stop_at_optimal=false", "train.chunk_steps=500",
+                             "dqn.learning_starts=100", "hierarchical.focus_starts=0.5"],
+                      defaults=algos_defaults("hierarchical"))
+    from jaxusar.experiments import hierarchical
+
+    exp = hierarchical.Experiment(cfg, jax.random.split(jax.random.PRNGKey(3), 1))
+    stage = exp.chains[0][0]
+    assert stage.trainer.env.focus == 0.5
+    state = stage.trainer.train(stage.keys, env_params=stage.env_params)
+    t = jax.device_get(state.trials)
+    last = t.test_coverage[:, -2]  # the last test (the final slot is a write-off)
+    n_weak = t.env_params.weak.sum(-1)
+    assert np.array_equal(n_weak, np.round((1 - last) * t.env_params.n_initiation).astype(int))
+    assert (n_weak > 0).any()  # 40 episodes: some task still misses states
 
 
 # -- chained navigation, the factored coordinator, maps beyond two rooms ----------------------------------

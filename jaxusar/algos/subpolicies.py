@@ -87,6 +87,8 @@ class TaskParams:
     n_initiation: jax.Array
     dist: jax.Array         # int32[G, H, W, 4]: optimal steps from each state to each goal's sub-goal
     gamma: jax.Array        # float32
+    weak: jax.Array         # bool[K]: the initiation states the latest test's greedy policy was not optimal
+                            # from (``SubtaskEnv.refocus``); False on padding
 
 
 @struct.dataclass
@@ -241,18 +243,26 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
         rows.append(dict(solid=solid, victim_at=victim_at, goal_region=goals,
                          **{k: pad(getattr(t, k), width[k]) for k in width},
                          **{"n_" + k: np.int32(len(getattr(t, k))) for k in width},
-                         dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma))))
+                         dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma)),
+                         weak=np.zeros(width["initiation"], bool)))
     return TaskParams(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
 
 
 class SubtaskEnv:
-    """The pseudo-reward env of one sub-task (one agent alone), parameterised by TaskParams."""
+    """The pseudo-reward env of one sub-task (one agent alone), parameterised by TaskParams.
+
+    ``focus``: the fraction of training episodes that start at an initiation state from which the
+    latest test's greedy policy was not optimal (``weak``, kept up to date by the trainer through
+    ``refocus``), while there is one; the rest start as the task says (``starts``). 0 draws every start
+    as before, with the same random numbers."""
 
     n_agents = 1
 
-    def __init__(self, env: USAREnv, horizon: int, features: str = "factored", n_goals: int = 0):
+    def __init__(self, env: USAREnv, horizon: int, features: str = "factored", n_goals: int = 0,
+                 focus: float = 0.0):
         self.height, self.width = env.height, env.width
         self.horizon = int(horizon)
+        self.focus = float(focus)
         self.region = env.graph.cell_region
         self.features, self.n_goals = features, int(n_goals)
         self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ()) \
@@ -277,7 +287,18 @@ class SubtaskEnv:
         return self.observe(s.agent_pos[0], s.agent_dir[0], s.triaged[0], s.goal)
 
     def reset(self, key, p: TaskParams):
-        return self._start(p.starts[jax.random.randint(key, (), 0, p.n_starts)])
+        if not self.focus:
+            return self._start(p.starts[jax.random.randint(key, (), 0, p.n_starts)])
+        k_start, k_focus, k_weak = jax.random.split(key, 3)
+        start = p.starts[jax.random.randint(k_start, (), 0, p.n_starts)]
+        n_weak = jnp.sum(p.weak)
+        j = jax.random.randint(k_weak, (), 0, jnp.maximum(n_weak, 1))  # the j-th weak state
+        weak = p.initiation[jnp.argmax(jnp.cumsum(p.weak) > j)]
+        return self._start(jnp.where((jax.random.uniform(k_focus) < self.focus) & (n_weak > 0), weak, start))
+
+    def refocus(self, p: TaskParams, good: jax.Array) -> TaskParams:
+        """``p`` with ``weak`` the initiation states not in ``good`` (``coverage``'s second output)."""
+        return p.replace(weak=~good & (jnp.arange(good.shape[0]) < p.n_initiation))
 
     def reset_test(self, key, p: TaskParams):
         return self._start(p.test_starts[jax.random.randint(key, (), 0, p.n_test_starts)])
@@ -307,9 +328,10 @@ class SubtaskEnv:
     def optimal_steps_from(self, s: SubtaskState, p: TaskParams) -> jax.Array:
         return p.dist[s.goal, s.agent_pos[0, 0], s.agent_pos[0, 1], s.agent_dir[0]]
 
-    def coverage(self, greedy, p: TaskParams) -> jax.Array:
-        """float32: the fraction of the task's initiation states from which the greedy policy reaches the
-        sub-goal on a shortest path, exactly, in one batched call.
+    def coverage(self, greedy, p: TaskParams) -> tuple[jax.Array, jax.Array]:
+        """``(fraction, good)``: the fraction (float32) of the task's initiation states from which the
+        greedy policy reaches the sub-goal on a shortest path, and which ones (bool[K], along
+        ``p.initiation``; False on padding), exactly, in one batched call.
 
         ``greedy(obs float32[obs_dim]) -> action int32[1]``. The policy is evaluated once on every
         (row, col, dir) of the map, for each goal index; a state is good when its greedy action succeeds,
@@ -343,8 +365,8 @@ class SubtaskEnv:
         good = good_for(0)[None] if n_goals == 1 else jax.lax.map(good_for, jnp.arange(n_goals))  # [G, H*W*4]
         init = p.initiation
         flat = (init[:, 0] * w + init[:, 1]) * 4 + init[:, 2]
-        counted = jnp.arange(init.shape[0]) < p.n_initiation
-        return jnp.sum(good[init[:, 3], flat] & counted) / p.n_initiation.astype(jnp.float32)
+        good = good[init[:, 3], flat] & (jnp.arange(init.shape[0]) < p.n_initiation)
+        return jnp.sum(good) / p.n_initiation.astype(jnp.float32), good
 
 
 def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:

@@ -27,8 +27,10 @@ action, params)``): the sub-policy tasks of the paper's method are one batch of 
 may also say where its tests start (``reset_test``) and what is optimal from there
 (``optimal_steps_from``); otherwise tests start like training and ``optimal_steps`` is fixed. An env
 with initiation states (``coverage(greedy, params)``: the fraction of them from which the greedy policy
-is optimal) is judged by that instead: a test is optimal at 1.0, and the kept params are the most
-covering ones; the test episode's own optimality is still recorded (``test_start_optimal``).
+is optimal, and which) is judged by that instead: a test is optimal at 1.0, and the kept params are the
+most covering ones; the test episode's own optimality is still recorded (``test_start_optimal``). Such an
+env may also take each test's verdict per state back into its params (``refocus(params, good)``), to
+start later training episodes where the policy still fails.
 
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
 stepping within its chunk (a vmap cannot stop one lane) but records nothing more, so its results are
@@ -323,13 +325,14 @@ class Trainer:
                                             false, false))
         return c[3], c[4], c[7], optimal
 
-    def coverage(self, params, env_params=None) -> jax.Array:
-        """The env's exact fraction of initiation states from which the greedy policy is optimal
-        (``env.coverage``), or nan for an env without initiation states."""
+    def coverage(self, params, env_params=None):
+        """``(fraction, good)``: the env's exact fraction of initiation states from which the greedy policy
+        is optimal and which ones (``env.coverage``), or (nan, None) for an env without initiation states."""
         if not self.has_coverage:
-            return jnp.full((), jnp.nan, jnp.float32)
+            return jnp.full((), jnp.nan, jnp.float32), None
         greedy = lambda obs: self.learner.greedy_act(params, obs, self.learner.init_carry())[0]
-        return self.env.coverage(greedy, env_params).astype(jnp.float32)
+        fraction, good = self.env.coverage(greedy, env_params)
+        return fraction.astype(jnp.float32), good
 
     def _evaluate_slot(self, s: TrialState, j) -> TrialState:
         """Run snapshot ``j``'s greedy test (if the slot is used); record it; keep the best params.
@@ -341,8 +344,12 @@ class Trainer:
         params = jax.tree.map(lambda x: x[j], s.snaps.params)
         key = jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), test)
         ret, length, terminated, optimal_steps = self.greedy_episode(params, key, s.env_params)
-        cov = self.coverage(params, s.env_params)
+        cov, good = self.coverage(params, s.env_params)
         used = test != NO_TEST
+        env_params = s.env_params
+        if hasattr(self.env, "refocus"):  # the env starts some episodes where this test was not optimal
+            env_params = jax.tree.map(lambda new, old: jnp.where(used, new, old),
+                                      self.env.refocus(env_params, good), env_params)
         start_optimal = used & terminated & (length <= optimal_steps + self.cfg.optimal_slack)
         optimal = used & (cov >= 1.0) if self.has_coverage else start_optimal
         idx = jnp.where(used, test, self.n_tests)
@@ -352,6 +359,7 @@ class Trainer:
         better = used & ((c > best_c) | ((c == best_c) & ((ret > s.best_return) |
                                                           ((ret == s.best_return) & (length < s.best_length)))))
         return s.replace(
+            env_params=env_params,
             test_return=s.test_return.at[idx].set(ret), test_length=s.test_length.at[idx].set(length),
             test_optimal=s.test_optimal.at[idx].set(optimal), test_solved=s.test_solved.at[idx].set(used & terminated),
             test_start_optimal=s.test_start_optimal.at[idx].set(start_optimal),

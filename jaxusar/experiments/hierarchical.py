@@ -53,7 +53,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
     params = sp.task_params(env, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
     n_goals = max(len(t.goals) for t in tasks)  # goal-conditioned navigation: its goals; else 0
-    senv = sp.SubtaskEnv(env, env.horizon, cfg.hierarchical.subpolicy_features, n_goals)
+    senv = sp.SubtaskEnv(env, env.horizon, h.subpolicy_features, n_goals, h.focus_starts)
     sub_learner = sp.make_learner(senv, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
     min_steps = int(min(params.dist[k, s[:, 3], s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
