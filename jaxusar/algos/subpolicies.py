@@ -27,6 +27,11 @@ step, terminal there. Tasks:
   cell of v's room with any facing (``triage_start: room``: "assuming the agent is already in the
   room", Sec. IV-B) or at the room's entry cells (``entry``: cells next to another region).
 
+Wherever a task's episodes start, ``hierarchical.focus_starts`` of them (0.5 by default) start instead
+at an initiation state from which the latest test's greedy policy was not optimal, while there is one
+(``SubtaskEnv.refocus``): the few hall cells a policy still gets wrong are otherwise a start once in
+hundreds of episodes (measured: benchmarks/README.md, "Starts where the last test failed").
+
 Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
 (the task's victim triaged; 0 for NAVIGATE), and with ``goal`` navigation a one-hot of the goal
 (the first for every other task), so all tasks x all trials stack into one vmapped batch; the per-task
