@@ -235,7 +235,7 @@ def add_reproduce(subparsers) -> None:
                    help="a shipped map or a path to a .txt layout (README: 'Your own map'); default two_rooms")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/<map>)")
     p.add_argument("--quick", action="store_true",
-                   help="reduced budgets: the same pipeline in minutes (about 8 on a 2-core CPU), for a first look")
+                   help="reduced budgets: the same pipeline in minutes (about 4 on a 2-core CPU), for a first look")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
                    help="override a setting of every algorithm (env.horizon=200) or of one "
                         "(iql.train.episodes=100); repeatable")
