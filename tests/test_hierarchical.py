@@ -7,10 +7,11 @@ import pytest
 
 from jaxusar import config, envs, planning
 from jaxusar.algos import coordinator as coord
+from jaxusar.algos import defaults as algos_defaults
 from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
 from jaxusar.config import ConfigError
-from jaxusar.algos import defaults as algos_defaults
+from jaxusar.experiments import hierarchical
 from jaxusar.experiments.hierarchical import auto_option_timeout
 
 THREE_ROOMS = """
@@ -385,8 +386,6 @@ def test_trainer_refocuses_on_the_latest_test():
     cfg = config.load(None, ["train.episodes=40", "train.stop_at_optimal=false", "train.chunk_steps=500",
                              "dqn.learning_starts=100", "hierarchical.focus_starts=0.5"],
                       defaults=algos_defaults("hierarchical"))
-    from jaxusar.experiments import hierarchical
-
     exp = hierarchical.Experiment(cfg, jax.random.split(jax.random.PRNGKey(3), 1))
     stage = exp.chains[0][0]
     assert stage.trainer.env.focus == 0.5

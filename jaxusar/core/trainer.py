@@ -174,6 +174,7 @@ class Trainer:
             raise ConfigError(f"a chunk of {self.chunk_steps} steps draws 2^32 or more update numbers per trial; "
                               "lower train.chunk_steps")
         self.has_coverage = hasattr(env, "coverage")
+        self.refocuses = self.has_coverage and hasattr(env, "refocus")  # takes each test's per-state verdict
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
         self._lanes_chunk = jax.jit(self._run_lanes, donate_argnums=0)
         self._init = jax.jit(jax.vmap(self._init_trial))
@@ -347,7 +348,7 @@ class Trainer:
         cov, good = self.coverage(params, s.env_params)
         used = test != NO_TEST
         env_params = s.env_params
-        if hasattr(self.env, "refocus"):  # the env starts some episodes where this test was not optimal
+        if self.refocuses:  # the env starts some episodes where this test was not optimal
             env_params = jax.tree.map(lambda new, old: jnp.where(used, new, old),
                                       self.env.refocus(env_params, good), env_params)
         start_optimal = used & terminated & (length <= optimal_steps + self.cfg.optimal_slack)
