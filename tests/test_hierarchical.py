@@ -143,6 +143,34 @@ def test_macro_env_validity_and_invalid_choice(two_rooms):
     assert int(s2.t) == 1 and s2.agent_pos.tolist() == s.agent_pos.tolist() and not bool(done)
 
 
+def test_an_invalid_choice_runs_no_subpolicy_step_even_beside_valid_ones(two_rooms):
+    """Under vmap, lax.cond computes both branches: an invalid lane must not run its (wrong) sub-policy to
+    the timeout while the batch waits. Counted: sub-policy calls of a batch whose choices are all invalid."""
+    env, opts = two_rooms
+    calls = []
+
+    def act(p, obs):
+        jax.debug.callback(lambda: calls.append(1))
+        return jnp.array([0])
+
+    macro = coord.MacroEnv(env, opts, np.array([[0, 1, 2, 3], [0, 1, 2, 3]]), subpolicy_act=act,
+                           observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9, invalid_penalty=-100.0,
+                           option_timeout=7)
+    _, s = macro.reset(None)
+    p = coord.CoordinatorParams(subpolicy=jnp.zeros((4, 1)))
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), s)
+    step = jax.jit(jax.vmap(macro.step, in_axes=(None, 0, 0, None)))
+    _, s2, r, _, info = step(None, batch, jnp.array([[2 * 4 + 0], [3 * 4 + 3]]), p)  # TRIAGE from the hall
+    jax.effects_barrier()
+    assert not info["valid"].any() and r.tolist() == [-100.0, -100.0] and s2.t.tolist() == [1, 1]
+    assert calls == []
+    # beside a valid lane, the invalid one still stands still; the valid one walks until its timeout
+    _, s2, r, _, info = step(None, batch, jnp.array([[2 * 4 + 0], [0]]), p)
+    jax.effects_barrier()
+    assert info["valid"].tolist() == [False, True] and info["steps"].tolist() == [1, 7] and s2.t.tolist() == [1, 7]
+    assert len(calls) == 7 * env.n_agents  # the valid lane's 7 steps; no call runs for the invalid lane alone
+
+
 def test_macro_step_runs_until_the_first_option_terminates(two_rooms):
     env, opts = two_rooms
     macro = _macro(env, opts)

@@ -289,8 +289,11 @@ class MacroEnv:
         zero = jnp.zeros((), jnp.float32)
 
         def run(st):
+            # under vmap this cond becomes a select that computes both branches: ``done`` starts as
+            # ``~valid`` so an invalid lane's loop runs no step (it would run a wrong sub-policy up to the
+            # timeout, and the batch would wait on it; its result is dropped either way)
             st, ret, disc, k, _, blocked = jax.lax.while_loop(
-                cond, body, (st, zero, zero, jnp.zeros((), jnp.int32), jnp.zeros((), bool), zeros))
+                cond, body, (st, zero, zero, jnp.zeros((), jnp.int32), ~valid, zeros))
             return (st, ret, disc, k) + self.still_running(s, st, options, active, blocked, k)
 
         # an invalid choice: penalty, one step of standing still
