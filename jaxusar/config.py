@@ -170,6 +170,8 @@ class CoordinatorConfig:
     eps_end: float = _field(0.05, _unit_interval)
     eps_decay_steps: int = _field(200, _positive, "decisions of the linear epsilon decay")
     chunk_steps: int = _field(64, _positive, "decisions per jitted chunk")
+    stop_at_optimal: bool = _field(True, doc="a trial stops once a team test was optimal, as train.stop_at_optimal "
+                                   "(its episodes to optimal and kept params are those of the full budget)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -563,6 +563,18 @@ def test_flat_coordinator_refuses_too_many_joint_options():
         build(config.load(None, ["env.map=office", "hierarchical.coordinator.kind=flat"], defaults=coord_defaults()))
 
 
+def test_the_coordinator_stops_at_optimal_by_config():
+    """hierarchical.coordinator.stop_at_optimal reaches the coordinator's trainer (on by default), not the
+    sub-policies' (train.stop_at_optimal); what stopping keeps is tested on the trainer (test_core). The
+    coordinator keeps stopped trials in its batch (its chunks cost less than a smaller batch's compile)."""
+    from jaxusar.experiments.hierarchical import build
+
+    for sets, want in [([], True), (["hierarchical.coordinator.stop_at_optimal=false"], False)]:
+        b = build(config.load(None, sets + ["train.stop_at_optimal=false"], defaults=coord_defaults()))
+        assert b["coord_trainer"].cfg.stop_at_optimal is want and b["sub_trainer"].cfg.stop_at_optimal is False
+        assert not b["coord_trainer"].drop_finished and b["sub_trainer"].drop_finished
+
+
 @pytest.mark.parametrize("termination", ["all", "own"])
 def test_the_team_episode_picture_replays_the_greedy_test(termination):
     """``team_episode`` (the pictures' step-by-step replay) takes exactly the steps and reward of the

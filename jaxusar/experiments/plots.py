@@ -78,8 +78,9 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         ep = np.arange(1, n + 1)
         band(axes[0, 0], ep, smooth(r["train_length"], smooth_window), label)
         band(axes[0, 1], ep, smooth(r["train_return"], smooth_window), label)
-        band(axes[1, 0], r["test_episode"], r["test_length"], label)
-        band(axes[1, 1], r["test_episode"], r["test_return"], label)
+        # a trial that stopped at optimal (stop_at_optimal) keeps its optimal params: its last test holds
+        band(axes[1, 0], r["test_episode"], forward_fill(r["test_length"]), label)
+        band(axes[1, 1], r["test_episode"], forward_fill(r["test_return"]), label)
     for ax in axes[:, 0]:
         if horizon:
             ax.axhline(horizon, color="grey", ls=":", lw=1)
@@ -94,7 +95,7 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
             y0, y1 = ax.get_ylim()
             pad = 0.05 * (hi - lo)
             ax.set_ylim(min(y0, lo - pad), max(y1, hi + pad))
-    if reward_range is not None and max(float(np.max(r["test_return"])) for _, r in series) <= reward_range[0]:
+    if reward_range is not None and max(float(np.nanmax(r["test_return"])) for _, r in series) <= reward_range[0]:
         axes[1, 1].text(0.5, 0.5, "no greedy test triaged a victim\nwithin this budget", transform=axes[1, 1].transAxes,
                         ha="center", va="center", fontsize=11, color="tab:red")
     axes[0, 0].set_title(f"train: steps per episode (moving avg {smooth_window})")
