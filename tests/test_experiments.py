@@ -5,9 +5,11 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from jaxusar.cli import main
+from jaxusar.experiments.plots import kept
 
 IQL_TINY = ["--set", "train.episodes=20", "--set", "train.test_every=10", "--set", "train.chunk_steps=2000",
             "--set", "env.horizon=100"]
@@ -267,3 +269,13 @@ def test_a_second_run_loads_its_programs_and_a_corrupted_cache_is_a_warning(tmp_
     again, err = run()
     assert "jaxusar: warning:" in err and "cache" in err and "Traceback" not in err
     assert again["usage"]["programs_compiled"] > 0 and again["best_test_return"] == cold["best_test_return"]
+
+
+def test_figures_show_a_stopped_trials_kept_test_not_its_last_one():
+    """A trial stops at the end of the chunk of its first optimal test (stop_at_optimal), so the last test
+    it ran may be worse (here 300 steps after the 18-step one): the figures' curves continue with the kept
+    params' test; a trial that ran every test is drawn as it ran."""
+    nan = float("nan")
+    curve = np.array([[300.0, 18.0, 300.0, nan, nan], [300.0, 250.0, 40.0, 30.0, 18.0]])
+    np.testing.assert_array_equal(kept(curve, np.array([18.0, 18.0])),
+                                  [[300, 18, 300, 18, 18], [300, 250, 40, 30, 18]])

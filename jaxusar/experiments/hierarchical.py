@@ -32,7 +32,7 @@ from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
 from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
-from jaxusar.experiments.plots import band, band_key, forward_fill, reward_range, smooth, training_figure
+from jaxusar.experiments.plots import band, band_key, kept, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
 from jaxusar.experiments.stats import in_words, summarize
 from jaxusar.experiments.train import environment_info, reference_metrics, stage_seconds
@@ -163,9 +163,9 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
     for k, name in enumerate(names):
         tl, tel = results["train_length"][k], results["test_length"][k]  # [trials, episodes]
         band(axes[k, 0], np.arange(1, tl.shape[1] + 1), smooth(tl, 10))
-        # a trial that stopped at optimal (train.stop_at_optimal) keeps its optimal params: its last test holds
-        band(axes[k, 1], results["test_episode"], forward_fill(tel))
-        band(axes[k, 2], results["test_episode"], 100 * forward_fill(results["test_coverage"][k]), color="tab:purple")
+        band(axes[k, 1], results["test_episode"], kept(tel, results["best_length"][k]))
+        band(axes[k, 2], results["test_episode"], 100 * kept(results["test_coverage"][k], results["best_coverage"][k]),
+             color="tab:purple")
         for ax, what in zip(axes[k, :2], ("train steps (moving avg 10)", "greedy test steps (from the start)")):
             ax.axhline(horizon, color="grey", ls=":", lw=1)
             if optimal[k] >= 0:
@@ -307,7 +307,8 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     names = [t.name for t in tasks]
     subpolicy_figure(sub, names, out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
     for k, name in enumerate(names):  # and one figure per sub-policy, as the paper's Fig. 4 panels
-        one = {**{n: v[k:k + 1] for n, v in sub.items() if n in ("train_length", "test_length", "test_coverage")},
+        one = {**{n: v[k:k + 1] for n, v in sub.items()
+                  if n in ("train_length", "test_length", "test_coverage", "best_length", "best_coverage")},
                "test_episode": sub["test_episode"]}
         subpolicy_figure(one, [name], out / f"fig4_{name.replace(':', '_').lower()}.png", env.horizon,
                          np.asarray(opt[k:k + 1]))

@@ -12,11 +12,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def forward_fill(x: np.ndarray) -> np.ndarray:
-    """Each nan (along the last axis) replaced by the last value before it."""
-    x = np.asarray(x, float)
-    idx = np.where(np.isnan(x), 0, np.arange(x.shape[-1]))
-    return np.take_along_axis(x, np.maximum.accumulate(idx, axis=-1), axis=-1)
+def kept(curve: np.ndarray, best: np.ndarray) -> np.ndarray:
+    """A test curve [trials, tests] whose tests a stopped trial did not run (nan: ``stop_at_optimal``) show
+    its kept params' test (``best`` [trials]: the first optimal one), which it ends with. The last test it
+    ran may be later and worse: a trial stops at the end of the chunk of its first optimal test."""
+    curve = np.asarray(curve, float)
+    return np.where(np.isnan(curve), np.asarray(best, float)[..., None], curve)
 
 
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
@@ -78,9 +79,8 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         ep = np.arange(1, n + 1)
         band(axes[0, 0], ep, smooth(r["train_length"], smooth_window), label)
         band(axes[0, 1], ep, smooth(r["train_return"], smooth_window), label)
-        # a trial that stopped at optimal (stop_at_optimal) keeps its optimal params: its last test holds
-        band(axes[1, 0], r["test_episode"], forward_fill(r["test_length"]), label)
-        band(axes[1, 1], r["test_episode"], forward_fill(r["test_return"]), label)
+        band(axes[1, 0], r["test_episode"], kept(r["test_length"], r["best_length"]), label)
+        band(axes[1, 1], r["test_episode"], kept(r["test_return"], r["best_return"]), label)
     for ax in axes[:, 0]:
         if horizon:
             ax.axhline(horizon, color="grey", ls=":", lw=1)
