@@ -38,7 +38,7 @@ def load_subpolicies(run: Path, trials: int):
             raise SystemExit(f"{path} is missing: --run must be a finished hierarchical run with at least {trials} "
                              "trials (its params/ folder)")
         blobs.append(serialization.msgpack_restore(path.read_bytes())["subpolicies"])
-    return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(a) for a in x]), *blobs)
+    return jax.tree.map(lambda *x: jnp.stack(x), *blobs)
 
 
 def cost(run: Path, trials: int, sets: list[str], drop_finished: bool = False) -> dict:
@@ -47,7 +47,7 @@ def cost(run: Path, trials: int, sets: list[str], drop_finished: bool = False) -
     cfg = config.load(None, sets, defaults=defaults)
     b = hierarchical.build(cfg)
     trainer, keys = b["coord_trainer"], trial_keys(cfg.seed, trials)
-    trainer.drop_finished = drop_finished or trainer.drop_finished
+    trainer.drop_finished |= drop_finished
     env_params = coord.CoordinatorParams(subpolicy=load_subpolicies(run, trials))
     start = time.perf_counter()
     state = trainer.init(keys, env_params)

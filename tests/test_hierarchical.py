@@ -567,10 +567,8 @@ def test_the_coordinator_stops_at_optimal_by_config():
     """hierarchical.coordinator.stop_at_optimal reaches the coordinator's trainer (on by default), not the
     sub-policies' (train.stop_at_optimal); what stopping keeps is tested on the trainer (test_core). The
     coordinator keeps stopped trials in its batch (its chunks cost less than a smaller batch's compile)."""
-    from jaxusar.experiments.hierarchical import build
-
     for sets, want in [([], True), (["hierarchical.coordinator.stop_at_optimal=false"], False)]:
-        b = build(config.load(None, sets + ["train.stop_at_optimal=false"], defaults=coord_defaults()))
+        b = hierarchical.build(config.load(None, sets + ["train.stop_at_optimal=false"], defaults=coord_defaults()))
         assert b["coord_trainer"].cfg.stop_at_optimal is want and b["sub_trainer"].cfg.stop_at_optimal is False
         assert not b["coord_trainer"].drop_finished and b["sub_trainer"].drop_finished
 
