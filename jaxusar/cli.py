@@ -307,6 +307,7 @@ def add_maps(subparsers) -> None:
                                 ("victims", 6, "victims, in distinct rooms while rooms last"), ("seed", 0, "seed")):
         g.add_argument(f"--{name}", type=int, default=default, help=f"{text} (default: {default})")
     g.add_argument("--name", default=None, help="file name stem (default: rooms<R>_<H>x<W>_s<SEED>)")
+    add_hall_radius(g)
     g.add_argument("--out", type=Path, default=Path("runs/maps"), metavar="DIR", help="folder (default: runs/maps)")
     g.set_defaults(run=maps_generate)
     s = sub.add_parser("segment", help="write the region grid segmented from a layout beside it (or to --out)",
@@ -314,7 +315,21 @@ def add_maps(subparsers) -> None:
                                    "NAME.regions.txt beside it, unless one exists (--force replaces it).")
     s.add_argument("layout", type=Path, help="a .txt layout")
     s.add_argument("--force", action="store_true", help="replace an existing region grid")
+    add_hall_radius(s)
     s.set_defaults(run=maps_segment)
+
+
+def add_hall_radius(parser) -> None:
+    from jaxusar.envs.mapgen import HALL_RADIUS
+
+    def radius(text: str) -> int:
+        if not text.isdigit():
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of steps (0 keeps halls whole)")
+        return int(text)
+
+    parser.add_argument("--hall-radius", type=radius, default=HALL_RADIUS, metavar="STEPS",
+                        help="cut halls into pieces within STEPS steps of a piece's centre, so that no "
+                             f"navigation sub-policy crosses a whole corridor; 0 keeps them whole (default: {HALL_RADIUS})")
 
 
 def maps_generate(args: argparse.Namespace) -> int:
@@ -326,7 +341,7 @@ def maps_generate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         layout, text, regions = generated_layout(args.height, args.width, args.rooms, args.medics, args.victims,
-                                                 args.seed, name=name)
+                                                 args.seed, name=name, hall_radius=args.hall_radius)
     except GeneratorError as err:
         raise UsageError(str(err)) from None
     seconds = time.perf_counter() - start
@@ -355,7 +370,7 @@ def maps_segment(args: argparse.Namespace) -> int:
         raise UsageError(f"{target} exists (a hand-made region grid wins); --force replaces it")
     text = args.layout.read_text()
     try:
-        regions = segmented_regions_text(text, args.layout.stem)
+        regions = segmented_regions_text(text, args.layout.stem, args.hall_radius)
         layout = parse_layout(text, regions, name=args.layout.stem)
     except LayoutError as err:
         raise UsageError(str(err)) from None

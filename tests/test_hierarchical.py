@@ -9,7 +9,7 @@ from jaxusar import config, envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import defaults as algos_defaults
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
+from jaxusar.algos.options import NAVIGATE, TRIAGE, next_hop, options_from_graph
 from jaxusar.config import ConfigError
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.hierarchical import auto_option_timeout
@@ -427,7 +427,6 @@ def test_trainer_refocuses_on_the_latest_test():
 
 # -- chained navigation, the factored coordinator, maps beyond two rooms ----------------------------------
 def test_next_hop_follows_the_region_graph():
-    from jaxusar.algos.options import next_hop
 
     # regions 0 - 1 - 2 - 3 in a line, 4 alone
     adj = np.zeros((5, 5), bool)
@@ -439,19 +438,23 @@ def test_next_hop_follows_the_region_graph():
 
 
 def test_chained_navigation_reaches_any_room_with_one_subpolicy_per_region():
-    """office: 9 rooms off one corridor, 4 medics. Chained: one navigation task per region (10), shared by the
-    medics (never medics x rooms^2); NAVIGATE-TO-R starts anywhere but R and runs to-hall then to-R."""
+    """office: 9 rooms off a corridor cut into pieces, 4 medics. Chained: one navigation task per region on some
+    shortest region path to a room (every region but the corridor's dead-end piece), shared by the medics (never
+    medics x rooms^2); NAVIGATE-TO-R starts anywhere but R and runs, piece by piece, to R's door, then into R."""
     env = envs.make("office", horizon=300)
-    opts = options_from_graph(env.graph, "chained")
+    g = env.graph
+    opts = options_from_graph(g, "chained")
     tasks = sp.make_tasks(env, opts, navigation="chained")
     nav = [t for t in tasks if t.victim < 0]
-    assert len(nav) == env.graph.n_regions == 10 and all(t.agent == -1 for t in nav)
-    assert len(tasks) == len(nav) + env.n_victims
+    hops = {int(h) for h in next_hop(g.adjacency)[:, list(g.rooms)].ravel() if h >= 0}
+    assert sorted(t.region for t in nav) == sorted(hops) and len(nav) == g.n_regions - 1
+    assert all(t.agent == -1 for t in nav) and len(tasks) == len(nav) + env.n_victims
     table = sp.policy_table(env, opts, tasks, "chained")
-    hall, room0, room5 = (env.graph.index(n) for n in ("hall_0", "room_0", "room_5"))
+    room0, room5 = g.index("room_0"), g.index("room_5")
+    door = lambda room: int(np.flatnonzero(g.adjacency[room])[0])  # the corridor piece a room opens on
     to5 = opts.names.index("NAVIGATE-TO-ROOM-5")
-    assert tasks[table[0, room0, to5]].name == "NAVIGATE-TO-HALL-0"
-    assert tasks[table[3, hall, to5]].name == "NAVIGATE-TO-ROOM-5"
+    assert tasks[table[0, room0, to5]].region == door(room0) and g.kinds[door(room0)] == "hall"
+    assert tasks[table[3, door(room5), to5]].name == "NAVIGATE-TO-ROOM-5"
     assert table[0, room5, to5] == -1  # not from inside the room itself
     assert bool(opts.can_initiate(room0, jnp.zeros(env.n_victims, bool))[to5])
 

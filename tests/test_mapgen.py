@@ -26,11 +26,43 @@ def blocked(grid: str) -> np.ndarray:
 
 
 def test_doorways_split_rooms_from_the_hall():
-    region, names, kinds = mapgen.segment(blocked(ROOMS_AND_HALL))
+    region, names, kinds = mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=0)
     assert names == ("room_0", "room_1", "room_2", "hall_0") and kinds == ("room",) * 3 + ("hall",)
     np.testing.assert_array_equal(region[0], [0, 0, 0, 0, -1, 1, 1, 1, 1, 1, -1, 2, 2, 2, 2])
     assert region[4, 2] == region[4, 7] == region[4, 12] == 3  # the doorways belong to the hall
     assert (region[5:] == 3).all() and (region[:4, :4] == 0).all()
+
+
+def _within(piece: np.ndarray, radius: int) -> bool:
+    """Whether some cell of ``piece`` reaches all of it within ``radius`` steps, staying inside it."""
+    return any(mapgen._geodesic(piece, [tuple(c)])[0][piece].max() <= radius for c in np.argwhere(piece))
+
+
+@pytest.mark.parametrize("radius", [1, 2, 4, 6])
+def test_a_long_hall_is_cut_into_connected_pieces_of_the_radius(radius):
+    whole, _, _ = mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=0)
+    region, names, kinds = mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=radius)
+    np.testing.assert_array_equal(region[whole < 3], whole[whole < 3])  # the rooms are untouched
+    pieces = [region == k for k in range(len(names)) if kinds[k] == "hall"]
+    assert np.array_equal(np.logical_or.reduce(pieces), whole == 3)  # the hall, every cell in one piece
+    assert len(pieces) > 1  # 33 cells, 16 steps end to end: more than one piece at any of these radii
+    for piece in pieces:
+        assert mapgen._components(piece)[1] == 1 and _within(piece, radius)
+    assert names[3:] == tuple(f"hall_{k}" for k in range(len(pieces)))
+
+
+def test_a_hall_within_the_radius_stays_whole():
+    region, names, kinds = mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=16)
+    np.testing.assert_array_equal(region, mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=0)[0])
+
+
+def test_a_big_map_cuts_its_halls_coarser_rather_than_outgrow_a_region_file():
+    """80x80 with 40 rooms: radius-4 pieces would be 96 regions, more than a region file's 62 letters; the
+    radius doubles until they fit (16 here), and the written file says so."""
+    layout, _, regions = mapgen.generated_layout(80, 80, 40, 4, 6, 0)
+    assert 41 < len(layout.region_names) <= len(mapgen.LETTERS)
+    assert "hall_radius=16)" in regions.splitlines()[0]
+    assert "hall_radius=4)" in mapgen.generated_layout(40, 40, 12, 4, 6, 0)[2].splitlines()[0]
 
 
 def test_pockets_join_their_room_and_a_door_between_two_rooms_joins_one():
@@ -55,8 +87,11 @@ def test_a_map_without_region_file_is_segmented_and_written(tmp_path):
     with pytest.warns(UserWarning, match="segmented it from the layout.*room_0 \\(room\\).*wrote"):
         layout = envs.load_layout(str(tmp_path / "mine.txt"))
     written = (tmp_path / "mine.regions.txt").read_text()
-    assert layout.region_names == ("room_0", "room_1", "room_2", "hall_0")
-    # a person edits it (the hall split in two): the file now wins over segmentation
+    assert layout.region_names[:4] == ("room_0", "room_1", "room_2", "hall_0")  # the hall, cut into pieces
+    region, names, _ = mapgen.segment(blocked(ROOMS_AND_HALL))
+    np.testing.assert_array_equal(layout.region, region)
+    # a person writes their own (the whole hall, then split in two their way): the file now wins
+    written = mapgen.regions_text(*mapgen.segment(blocked(ROOMS_AND_HALL), hall_radius=0))
     edited = written.replace("D hall_0 hall", "D hall_0 hall\nE east_hall hall")
     lines = edited.split("---\n")
     rows = lines[1].splitlines()
@@ -73,7 +108,8 @@ def test_an_unwritable_region_file_is_a_warning_and_the_map_still_loads(tmp_path
     monkeypatch.setattr("pathlib.Path.write_text", refuse)
     with pytest.warns(UserWarning, match="could not write .*mine.regions.txt.*Permission denied"):
         layout = envs.load_layout(str(tmp_path / "mine.txt"))
-    assert len(layout.region_names) == 4 and not (tmp_path / "mine.regions.txt").exists()
+    assert layout.region_names == mapgen.segment(blocked(ROOMS_AND_HALL))[1]
+    assert not (tmp_path / "mine.regions.txt").exists()
 
 
 def test_a_layout_with_an_unreachable_victim_fails_before_anything_is_written(tmp_path):
@@ -89,8 +125,9 @@ def test_shipped_maps(name, medics, victims, rooms):
     env = envs.make(name)
     assert env.n_agents == medics and env.n_victims == victims
     assert env.graph.kinds.count("room") == rooms and "hall" in env.graph.kinds
-    # the shipped region grids are what segmentation gives (none was edited by hand)
-    region, names, kinds = mapgen.segment(env.layout.blocked)
+    # the shipped region grids are what segmentation gives (none was edited by hand); three_rooms' and
+    # four_rooms' were segmented before halls were cut into pieces, and keep their whole corridor
+    region, names, kinds = mapgen.segment(env.layout.blocked, **({} if name == "office" else {"hall_radius": 0}))
     np.testing.assert_array_equal(region, env.layout.region)
     assert (names, kinds) == (env.layout.region_names, env.layout.region_kinds)
     if name == "office":
@@ -104,10 +141,10 @@ def test_generated_maps_are_what_was_asked_and_reproducible(seed, height, width,
     layout, text, regions = mapgen.generated_layout(height, width, rooms, medics, victims, seed)
     assert layout.shape == (height, width)
     assert len(layout.agent_start) == medics and len(layout.victim_pos) == victims
-    assert layout.region_kinds.count("room") == rooms and layout.region_kinds.count("hall") == 1
+    assert layout.region_kinds.count("room") == rooms and layout.region_kinds.count("hall") >= 1
     graph = envs.make(layout).graph
-    hall = graph.kinds.index("hall")
-    assert all(graph.adjacency[r, hall] for r in graph.rooms)  # every room opens on the corridor
+    halls = [k for k, kind in enumerate(graph.kinds) if kind == "hall"]
+    assert all(graph.adjacency[r, halls].any() for r in graph.rooms)  # every room opens on a corridor piece
     assert all(graph.kinds[graph.cell_region[r, c]] == "hall" for r, c in layout.agent_start)
     rooms_with = {int(graph.victim_region[v]) for v in range(victims)}
     assert len(rooms_with) == min(victims, rooms)  # victims spread over distinct rooms while rooms last
@@ -135,7 +172,10 @@ def test_maps_generate_cli(tmp_path, capsys):
     assert (out / f"{stem}.png").read_bytes()[:4] == b"\x89PNG"
     env = envs.make(str(out / f"{stem}.txt"))  # loads with its written region grid
     assert env.n_agents == 4 and env.graph.kinds.count("room") == 8
-    assert "9 regions (8 rooms), 4 medics, 6 victims; generated, segmented and checked in" in capsys.readouterr().out
+    assert "17 regions (8 rooms), 4 medics, 6 victims; generated, segmented and checked in" in capsys.readouterr().out
+    assert main(["maps", "generate", "--height", "20", "--width", "30", "--rooms", "8", "--seed", "3", "--hall-radius",
+                 "0", "--name", "whole", "--out", str(out)]) == 0
+    assert "9 regions (8 rooms)" in capsys.readouterr().out  # one corridor, kept whole
     with pytest.raises(SystemExit) as e:
         main(["maps", "generate", "--rooms", "100", "--out", str(out)])
     err = capsys.readouterr().err
@@ -144,8 +184,12 @@ def test_maps_generate_cli(tmp_path, capsys):
 
 def test_maps_segment_cli(tmp_path, capsys):
     (tmp_path / "mine.txt").write_text(ROOMS_AND_HALL)
-    assert main(["maps", "segment", str(tmp_path / "mine.txt")]) == 0
+    assert main(["maps", "segment", str(tmp_path / "mine.txt"), "--hall-radius", "0"]) == 0
     assert "4 regions: room_0 (room), room_1 (room), room_2 (room), hall_0 (hall)" in capsys.readouterr().out
+    for bad in ("-1", "two"):
+        with pytest.raises(SystemExit) as e:
+            main(["maps", "segment", str(tmp_path / "mine.txt"), "--force", "--hall-radius", bad])
+        assert e.value.code == 2 and f"{bad!r} is not a whole number of steps" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:  # never overwrites a (maybe hand-made) region grid
         main(["maps", "segment", str(tmp_path / "mine.txt")])
     assert e.value.code == 2 and "--force" in capsys.readouterr().err

@@ -4,6 +4,8 @@
 left (corridors, and the doorways in room walls) is hall. Doorways thus split regions: a 1-wide gap in
 a wall belongs to the corridor it opens onto, and the room behind it starts at its first wide cell.
 Small thin pockets (an alcove of a room, a doorway directly between two rooms) join a room they touch.
+A long hall is cut into pieces (``HALL_RADIUS``), so that navigating to a region never means crossing a
+whole corridor.
 A hand-made ``NAME.regions.txt`` always wins; ``layout.load_layout`` segments only a map without one,
 and writes the result beside it for a person to inspect and edit.
 
@@ -25,6 +27,7 @@ from jaxusar.envs.layout import Layout, LayoutError, parse_layout
 LETTERS = string.ascii_uppercase + string.ascii_lowercase + string.digits
 WIDE = 3         # a room holds a WIDE x WIDE block of open cells; a narrower area is hall
 POCKET = 4       # a thin area of at most this many cells touching a room joins it
+HALL_RADIUS = 4  # halls are cut into pieces within this many steps of a piece's centre (0: kept whole)
 
 
 def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
@@ -71,30 +74,81 @@ def _touching(labels: np.ndarray, mask: np.ndarray) -> set[int]:
     return set(int(x) for x in np.unique(labels[near & ~mask]) if x >= 0)
 
 
-def segment(blocked: np.ndarray) -> tuple[np.ndarray, tuple[str, ...], tuple[str, ...]]:
+def _geodesic(mask: np.ndarray, seeds: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Breadth-first steps within ``mask`` from the nearest of ``seeds`` and which seed that is (the
+    first seed wins a tie): (dist, owner) int32[H, W], -1 outside ``mask``."""
+    h, w = mask.shape
+    dist, owner = np.full((h, w), -1, np.int32), np.full((h, w), -1, np.int32)
+    frontier = []
+    for k, (r, c) in enumerate(seeds):
+        dist[r, c], owner[r, c] = 0, k
+        frontier.append((r, c))
+    while frontier:
+        nxt = []
+        for r, c in frontier:
+            for nr, nc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if 0 <= nr < h and 0 <= nc < w and mask[nr, nc] and dist[nr, nc] < 0:
+                    dist[nr, nc], owner[nr, nc] = dist[r, c] + 1, owner[r, c]
+                    nxt.append((nr, nc))
+        frontier = nxt
+    return dist, owner
+
+
+def _pieces(cells: np.ndarray, radius: int) -> list[np.ndarray]:
+    """A connected hall ``cells`` (bool[H, W]) cut into pieces whose every cell lies within ``radius``
+    steps of its piece's seed: seeds by farthest-point sampling from the hall's first cell (row-major),
+    each cell to its nearest seed. One piece when the hall is that small already."""
+    seeds = [tuple(int(x) for x in np.argwhere(cells)[0])]
+    while True:
+        dist, owner = _geodesic(cells, seeds)
+        far = np.unravel_index(np.argmax(dist), dist.shape)
+        if dist[far] <= radius:
+            return [owner == k for k in range(len(seeds))]
+        seeds.append(tuple(int(x) for x in far))
+
+
+def segment(blocked: np.ndarray, hall_radius: int = HALL_RADIUS) -> tuple[np.ndarray, tuple[str, ...], tuple[str, ...]]:
     """Rooms and halls of a map from its blocked cells alone.
+
+    ``hall_radius`` > 0 cuts every hall into pieces of at most that many steps from a piece's centre,
+    so that no navigation sub-task (to a region from the regions next to it) has to cross a long
+    corridor: chained navigation then goes along a corridor piece by piece (measured on office:
+    benchmarks/README.md, "Long corridors cut into pieces"); 0 keeps each hall whole. Where the pieces
+    would be more regions than a region file holds, the radius doubles until they fit (the written
+    region file's header says which radius).
 
     Returns (region int32[H, W] with -1 on blocked cells, names, kinds), regions numbered rooms first
     in row-major order of their first cell (``room_0``, ``room_1``, ..., then ``hall_0``, ...).
     """
+    return _segment(blocked, hall_radius)[:3]
+
+
+def _segment(blocked, hall_radius):
+    """``segment``'s three outputs and the radius it cut halls at."""
     open_ = ~np.asarray(blocked, bool)
     rooms, n_rooms = _components(_wide(open_))
     thin, n_thin = _components(open_ & (rooms < 0))
     region = rooms.copy()
-    halls = []
+    whole = []
     for t in range(n_thin):
         cells = thin == t
         near = sorted(_touching(rooms, cells))
         if near and cells.sum() <= POCKET and (len(near) == 1 or cells.sum() <= 2):
             region[cells] = near[0]  # an alcove, or a doorway straight from one room into another
         else:
-            halls.append(cells)
+            whole.append(cells)
+    radius = hall_radius
+    while True:
+        halls = [p for cells in whole for p in (_pieces(cells, radius) if radius > 0 else [cells])]
+        if n_rooms + len(halls) <= len(LETTERS) or len(halls) == len(whole):
+            break
+        radius *= 2
     for k, cells in enumerate(halls):
         region[cells] = n_rooms + k
     names = tuple(f"room_{i}" for i in range(n_rooms)) + tuple(f"hall_{k}" for k in range(len(halls)))
     if len(names) > len(LETTERS):
         raise LayoutError(f"segmentation found {len(names)} regions; a region file holds at most {len(LETTERS)}")
-    return region, names, ("room",) * n_rooms + ("hall",) * len(halls)
+    return region, names, ("room",) * n_rooms + ("hall",) * len(halls), radius
 
 
 def regions_text(region: np.ndarray, names, kinds, comment: str = "") -> str:
@@ -197,22 +251,23 @@ def generate(height: int, width: int, rooms: int, medics: int, victims: int, see
 
 
 def generated_layout(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0,
-                     name: str = "generated") -> tuple[Layout, str, str]:
+                     name: str = "generated", hall_radius: int = HALL_RADIUS) -> tuple[Layout, str, str]:
     """``generate`` parsed and checked: (Layout, layout text, region grid text)."""
     text = generate(height, width, rooms, medics, victims, seed)
-    regions = segmented_regions_text(text, name)
+    regions = segmented_regions_text(text, name, hall_radius)
     try:
         return parse_layout(text, regions, name=name), text, regions
     except LayoutError as err:  # e.g. victims sharing a small room wall one another in
         raise GeneratorError(f"seed {seed} made an unsolvable map ({err}); try another seed or fewer victims") from None
 
 
-def segmented_regions_text(layout_text: str, name: str = "<string>") -> str:
+def segmented_regions_text(layout_text: str, name: str = "<string>", hall_radius: int = HALL_RADIUS) -> str:
     """The region grid file ``segment`` makes for a layout's text."""
     from jaxusar.envs.layout import _split_header
 
     _, rows = _split_header(layout_text, f"layout {name!r}")
     chars = np.array([list(row) for row in rows])
-    region, names, kinds = segment((chars == "#") | (chars == "X"))
+    region, names, kinds, radius = _segment((chars == "#") | (chars == "X"), hall_radius)
     return regions_text(region, names, kinds, f"region grid of {name!r} segmented from its layout "
-                        "(jaxusar.envs.mapgen.segment); edit freely: a region file beside a layout wins")
+                        f"(jaxusar.envs.mapgen.segment, hall_radius={radius}); edit freely: a region file "
+                        "beside a layout wins")
