@@ -11,7 +11,8 @@ A config file has up to four sections, each a frozen dataclass below::
 Unknown keys, wrong types and impossible values raise ``ConfigError`` naming the dotted key.
 ``--set train.episodes=200`` style overrides go through the same validation. Layers, each over the one
 before: the dataclass defaults, an algorithm's ``DEFAULTS``, the map's ``NAME.settings.yaml`` (settings
-that name its tasks or regions, so they apply only on that map), a config file, ``--set``.
+that name its tasks or regions, or that one learner needs there, so they apply only on that map; see
+``map_settings``), a config file, ``--set``.
 """
 
 from __future__ import annotations
@@ -337,7 +338,9 @@ def _read_yaml(path: Path, what: str) -> dict:
 
 
 def map_settings(data: dict) -> dict:
-    """The settings file of the map that ``data`` (a config dict) runs on, or {} (envs/layout.py)."""
+    """The settings file of the map that ``data`` (a config dict) runs on, or {} (envs/layout.py): its
+    sections for every algorithm, then its ``algorithms.<algo>`` section for ``data``'s algorithm only
+    (a budget one learner needs on this map, say)."""
     from jaxusar.envs.layout import settings_path
 
     env = data.get("env", {})
@@ -346,11 +349,21 @@ def map_settings(data: dict) -> dict:
     if path is None:
         return {}
     settings = _read_yaml(path, "map settings file")
+    own = settings.pop("algorithms", None) or {}
     try:
+        if not isinstance(own, dict):
+            raise ConfigError("algorithms: expected a mapping of algorithm names to settings")
+        from jaxusar import algos
+
+        for algo, part in own.items():
+            algos.algorithm(algo)  # an unknown name: a ConfigError listing the known ones
+            if not isinstance(part, dict):
+                raise ConfigError(f"algorithms.{algo}: expected a mapping of settings")
+            from_dict(ExperimentConfig, _merge(settings, part))
         from_dict(ExperimentConfig, settings)
     except ConfigError as err:
         raise ConfigError(f"map settings file {str(path)!r}: {err}") from None
-    return settings
+    return _merge(settings, own.get(data.get("algo", ExperimentConfig.algo)) or {})
 
 
 def load(path: str | Path | None = None, sets: list[str] | None = None, defaults: dict | None = None,

@@ -345,6 +345,19 @@ def test_finished_trials_drop_to_the_next_smaller_power_of_two():
         assert (None if got is None else got.tolist()) == want, live
 
 
+def test_batch_buckets_are_powers_of_two_below_24_and_waste_at_most_a_third_above():
+    from jaxusar.core.trainer import batch_bucket
+
+    assert [batch_bucket(n) for n in (1, 2, 3, 5, 9, 15, 16, 17, 24, 25, 33, 48, 49, 97, 133, 184)] == \
+        [1, 2, 4, 8, 16, 16, 16, 24, 24, 32, 48, 48, 64, 128, 192, 192]
+    for n in range(1, 1000):
+        size = batch_bucket(n)
+        assert size >= n and (size & (size - 1) == 0 if size < 24 else 3 * (size - n) <= size), n
+    # few programs: 1, 2, 4, 8, 16, 24, 32, 48, ..., 256, 384
+    assert sorted({batch_bucket(n) for n in range(1, 385)}) == [1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128, 192,
+                                                                 256, 384]
+
+
 def test_stop_at_optimal_keeps_every_number_up_to_the_stop_and_runs_less():
     """train.stop_at_optimal: a trial stops after the chunk of its first optimal test. Its episodes to
     optimal, kept params and curves up to the stop equal the full run's; the rest is nan, and it ran

@@ -139,6 +139,18 @@ def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
     (tmp_path / "office.settings.yaml").write_text("hierarchical:\n  task_gama: {}\n")
     with pytest.raises(config.ConfigError, match="office.settings.yaml.*task_gama"):
         config.load(None, [f"env.map={path}"], defaults)
+    # an algorithms.<algo> section applies to that algorithm only; a wrong name or key there is named
+    (tmp_path / "office.settings.yaml").write_text("algorithms:\n  iql: {train: {episodes: 70}}\n")
+    assert config.load(None, [f"env.map={path}"], algos.defaults("iql")).train.episodes == 70
+    assert config.load(None, [f"env.map={path}"], defaults).train.episodes == defaults["train"]["episodes"]
+    assert config.load(None, [f"env.map={path}", "train.episodes=90"], algos.defaults("iql")).train.episodes == 90
+    for text, named in [("algorithms:\n  iqll: {train: {episodes: 70}}\n", "unknown algorithm 'iqll'"),
+                        ("algorithms:\n  iql: {train: {episode: 70}}\n", "train.episode"),
+                        ("algorithms:\n  iql: 70\n", "algorithms.iql: expected a mapping"),
+                        ("algorithms: [iql]\n", "algorithms: expected a mapping")]:
+        (tmp_path / "office.settings.yaml").write_text(text)
+        with pytest.raises(config.ConfigError, match=f"office.settings.yaml.*{named}"):
+            config.load(None, [f"env.map={path}"], defaults)
     # a task name the map lacks: one line naming the map's tasks and the fix, before anything compiles
     (tmp_path / "office.settings.yaml").unlink()
     with pytest.raises(SystemExit) as e:

@@ -367,6 +367,9 @@ def test_reproduce_results_go_to_a_folder_named_after_the_map():
     assert {c.env.map for c in cfgs.values()} == {"four_rooms"}
     assert cfgs["hierarchical"].hierarchical.coordinator.kind == "factored"  # four_rooms' settings file
     assert cfgs["hierarchical"].train.episodes == 150  # --quick still applies
+    full = reproduce.configs(map="office")  # office's settings file gives the baselines their own budget
+    assert full["doc"].train.episodes == full["iql"].train.episodes == 500
+    assert full["hierarchical"].train.episodes == 600 and reproduce.configs()["iql"].train.episodes == 5000
 
 
 def test_trainers_start_longest_first_counting_the_updates_per_env_step():

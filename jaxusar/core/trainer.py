@@ -35,9 +35,10 @@ start later training episodes where the policy still fails.
 Trials run until every trial has ``episodes`` training episodes; a trial that is done early keeps
 stepping within its chunk (a vmap cannot stop one lane) but records nothing more, so its results are
 exactly those of running it alone. Between chunks the host drops finished trials: once the ones still
-running fit a power of two smaller than the whole batch, the next chunks run those only, gathered into
-a batch padded to that power of two and scattered back (``lanes_to_run``), so a slow trial no longer
-makes every finished one pay (each smaller batch compiles its chunk once, counted in the run's seconds).
+running fit a smaller bucket than the whole batch (a power of two, or three quarters of one:
+``batch_bucket``), the next chunks run those only, gathered into a batch padded to that bucket and
+scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay (each smaller
+batch compiles its chunk once, counted in the run's seconds).
 
 Episode ``i``'s return and length, test ``j`` (after training episode ``(j + 1) * test_every``), the
 best test's params (paper Sec. V: catastrophic forgetting) and ``episodes_to_optimal`` (the
@@ -134,6 +135,15 @@ def _steps_of(info) -> jax.Array:
     return info.get("steps", jnp.ones((), jnp.int32)) if isinstance(info, dict) else jnp.ones((), jnp.int32)
 
 
+def batch_bucket(live: int) -> int:
+    """The batch that ``live`` running trials are padded to once compacted: the next power of two, or from
+    24 on three quarters of one where that fits (24, 48, 96, 192, ...: at most a third is padding, not
+    half). Few sizes, so few programs compile; none below 16 but powers of two, where XLA CPU rounds a
+    batch's update differently from a wider one (benchmarks/README.md, "Finished trials stop costing")."""
+    size = 1 << math.ceil(math.log2(max(live, 1)))
+    return size * 3 // 4 if size >= 32 and live <= size * 3 // 4 else size
+
+
 class Trainer:
     """Trains ``learner`` on ``env`` for ``cfg.episodes`` episodes per trial.
 
@@ -148,7 +158,7 @@ class Trainer:
       min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
         updates); defaults to min(optimal_steps, horizon).
       drop_finished: between chunks, run only the trials still short of their episodes once they fit a
-        smaller power-of-two batch (``lanes_to_run``); False steps every trial to the end.
+        smaller bucketed batch (``lanes_to_run``); False steps every trial to the end.
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
@@ -425,15 +435,16 @@ class Trainer:
         return out.replace(trials=trials)
 
     def lanes_to_run(self, state: TrainState) -> np.ndarray | None:
-        """The trials still short of their episodes, padded to a power of two, once that batch is smaller
-        than all trials (384 lanes: 256 once 256 or fewer run); None (run them all) before, with
-        ``drop_finished`` off, or when the trials are sharded over several devices. A finished trial records nothing more (module docstring), so leaving
-        it out changes no result; the batch sizes are few (halvings), so few programs compile."""
+        """The trials still short of their episodes, padded to their ``batch_bucket``, once that batch is
+        smaller than all trials (384 lanes: 256 once 256 or fewer run, 192 once 192 do); None (run them
+        all) before, with ``drop_finished`` off, or when the trials are sharded over several devices. A
+        finished trial records nothing more (module docstring), so leaving it out changes no result; the
+        batch sizes are few, so few programs compile."""
         if not self.drop_finished or len(state.trials.episodes.sharding.device_set) > 1:
             return None
         live = np.flatnonzero(self._live(*self._counts(state)))
         n = len(state.trials.episodes)
-        size = 1 << math.ceil(math.log2(max(len(live), 1)))
+        size = batch_bucket(len(live))
         if size >= n:
             return None
         return np.concatenate([live, np.full(size - len(live), n)]).astype(np.int32)
