@@ -138,8 +138,9 @@ def _steps_of(info) -> jax.Array:
 def batch_bucket(live: int) -> int:
     """The batch that ``live`` running trials are padded to once compacted: the next power of two, or from
     24 on three quarters of one where that fits (24, 48, 96, 192, ...: at most a third is padding, not
-    half). Few sizes, so few programs compile; none below 16 but powers of two, where XLA CPU rounds a
-    batch's update differently from a wider one (benchmarks/README.md, "Finished trials stop costing")."""
+    half). Few sizes, so few programs compile. Below 24 only powers of two, as before: a batch of fewer
+    than 16 lanes, where XLA CPU rounds the update differently from a wider one, runs at the size it
+    always did (benchmarks/README.md, "Finished trials stop costing")."""
     size = 1 << math.ceil(math.log2(max(live, 1)))
     return size * 3 // 4 if size >= 32 and live <= size * 3 // 4 else size
 
