@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -175,22 +174,32 @@ def _parse_regions(text, shape, blocked, name):
     return region, tuple(names), tuple(kinds)
 
 
+def _geodesic(mask: np.ndarray, seeds) -> tuple[np.ndarray, np.ndarray]:
+    """Breadth-first steps within ``mask`` from the nearest of ``seeds`` ((row, col) cells) and which seed
+    that is (the first seed wins a tie): (dist, owner) int32[H, W], -1 where no seed reaches."""
+    h, w = mask.shape
+    dist, owner = np.full((h, w), -1, np.int32), np.full((h, w), -1, np.int32)
+    frontier = []
+    for k, (r, c) in enumerate(seeds):
+        dist[r, c], owner[r, c] = 0, k
+        frontier.append((r, c))
+    while frontier:
+        nxt = []
+        for r, c in frontier:
+            for nr, nc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if 0 <= nr < h and 0 <= nc < w and mask[nr, nc] and dist[nr, nc] < 0:
+                    dist[nr, nc], owner[nr, nc] = dist[r, c] + 1, owner[r, c]
+                    nxt.append((nr, nc))
+        frontier = nxt
+    return dist, owner
+
+
 def _check_reachable(layout: Layout) -> None:
     """Every victim must be triageable: some agent can reach a cell next to it (ignoring other agents)."""
     h, w = layout.shape
     solid = layout.blocked.copy()
     solid[tuple(layout.victim_pos.T)] = True
-    seen = np.zeros((h, w), bool)
-    queue = deque(map(tuple, layout.agent_start))
-    for cell in queue:
-        seen[cell] = True
-    while queue:
-        r, c = queue.popleft()
-        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
-            nr, nc = r + dr, c + dc
-            if 0 <= nr < h and 0 <= nc < w and not solid[nr, nc] and not seen[nr, nc]:
-                seen[nr, nc] = True
-                queue.append((nr, nc))
+    seen = _geodesic(~solid, [tuple(int(x) for x in cell) for cell in layout.agent_start])[0] >= 0
     for v, (r, c) in enumerate(layout.victim_pos):
         near = [(r + dr, c + dc) for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))]
         if not any(0 <= nr < h and 0 <= nc < w and seen[nr, nc] for nr, nc in near):

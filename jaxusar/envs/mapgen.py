@@ -22,7 +22,7 @@ import string
 
 import numpy as np
 
-from jaxusar.envs.layout import Layout, LayoutError, parse_layout
+from jaxusar.envs.layout import Layout, LayoutError, _geodesic, parse_layout
 
 LETTERS = string.ascii_uppercase + string.ascii_lowercase + string.digits
 WIDE = 3         # a room holds a WIDE x WIDE block of open cells; a narrower area is hall
@@ -72,26 +72,6 @@ def _touching(labels: np.ndarray, mask: np.ndarray) -> set[int]:
     near[:, 1:] |= mask[:, :-1]
     near[:, :-1] |= mask[:, 1:]
     return set(int(x) for x in np.unique(labels[near & ~mask]) if x >= 0)
-
-
-def _geodesic(mask: np.ndarray, seeds: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
-    """Breadth-first steps within ``mask`` from the nearest of ``seeds`` and which seed that is (the
-    first seed wins a tie): (dist, owner) int32[H, W], -1 outside ``mask``."""
-    h, w = mask.shape
-    dist, owner = np.full((h, w), -1, np.int32), np.full((h, w), -1, np.int32)
-    frontier = []
-    for k, (r, c) in enumerate(seeds):
-        dist[r, c], owner[r, c] = 0, k
-        frontier.append((r, c))
-    while frontier:
-        nxt = []
-        for r, c in frontier:
-            for nr, nc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
-                if 0 <= nr < h and 0 <= nc < w and mask[nr, nc] and dist[nr, nc] < 0:
-                    dist[nr, nc], owner[nr, nc] = dist[r, c] + 1, owner[r, c]
-                    nxt.append((nr, nc))
-        frontier = nxt
-    return dist, owner
 
 
 def _pieces(cells: np.ndarray, radius: int) -> list[np.ndarray]:
