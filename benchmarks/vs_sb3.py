@@ -19,13 +19,15 @@ steps, the rest of its loop), timed inside the same run.
     python benchmarks/vs_sb3.py                          # 8 seeds x 30000 env steps (about 4 minutes)
     python benchmarks/vs_sb3.py --seeds 2 --steps 4000   # smoke run
     python benchmarks/vs_sb3.py --compile-cache /tmp/jaxusar-xla --out benchmarks/results/vs_sb3_cache.json
-                                                         # jaxusar cold (compiles), then warm (loads programs)
+                                                         # jaxusar cold (compiles), then 3 warm (load programs)
+    python benchmarks/vs_sb3.py --jax-threads 1 --torch-threads 1   # each side on one thread per op
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import sys
@@ -54,6 +56,26 @@ TEST_EVERY = 10  # training episodes between greedy tests (configs/hierarchical.
 
 
 # -- jaxusar ----------------------------------------------------------------------------------------
+def start_xla_cpu(threads: int | None) -> int:
+    """Start JAX's CPU backend with an intra-op thread pool of ``threads`` threads (None: XLA's default, one
+    per CPU this process may run on); returns the pool's size. XLA sizes the pool from the process's CPU
+    affinity when the backend starts, so the process runs on ``threads`` CPUs for that moment only."""
+    from jax._src import xla_bridge
+
+    cpus = sorted(os.sched_getaffinity(0))
+    if threads is None or threads >= len(cpus):
+        jax.devices()
+        return len(cpus)
+    if xla_bridge.backends_are_initialized():
+        raise SystemExit("--jax-threads: JAX's backend started before the thread pool could be sized")
+    os.sched_setaffinity(0, cpus[:threads])
+    try:
+        jax.devices()
+    finally:
+        os.sched_setaffinity(0, cpus)
+    return threads
+
+
 def run_jaxusar(task: ua.Subtask, trials: int, steps: int, chunk_steps: int, seed: int = 0) -> dict:
     dqn = config.from_dict(DQNConfig, MATCHED)
     episodes = steps // task.optimal_steps + 1  # more than a trial can finish: recording never stops early
@@ -191,9 +213,13 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=30_000, help="env steps per trial (a multiple of --chunk-steps)")
     p.add_argument("--chunk-steps", type=int, default=10_000, help="jaxusar env steps per jitted chunk")
     p.add_argument("--torch-threads", type=int, default=None, help="torch.set_num_threads (default: torch's own)")
+    p.add_argument("--jax-threads", type=int, default=None,
+                   help="threads of XLA's CPU intra-op pool (default: one per CPU); 1 runs every op on one thread")
     p.add_argument("--gym-backend", choices=("numpy", "jax"), default="numpy",
                    help="SB3's training env: numpy dynamics, or the package's jitted step called every step")
-    p.add_argument("--repeats", type=int, default=3, help="jaxusar runs (median wall reported; SB3 runs once)")
+    p.add_argument("--repeats", type=int, default=3,
+                   help="jaxusar runs whose median wall is reported (with --compile-cache: warm runs, after one "
+                        "cold run); SB3 runs once")
     p.add_argument("--compile-cache", metavar="DIR",
                    help="JAX's persistent compile cache in DIR, emptied first: the first jaxusar run compiles "
                         "and writes it (cold), the others load their programs from it (warm; the median of those "
@@ -201,9 +227,10 @@ def main(argv=None):
     p.add_argument("--skip-sb3", action="store_true")
     p.add_argument("--out", default="benchmarks/results/vs_sb3.json")
     args = p.parse_args(argv)
+    if args.repeats < 1 or (args.jax_threads is not None and args.jax_threads < 1):
+        p.error("--repeats and --jax-threads must be >= 1")
+    jax_threads = start_xla_cpu(args.jax_threads)
     if args.compile_cache:
-        if args.repeats < 2:
-            p.error("--compile-cache needs --repeats >= 2 (one cold run, then warm ones)")
         shutil.rmtree(args.compile_cache, ignore_errors=True)
         if enable_compile_cache(folder=args.compile_cache) is None:
             p.error(f"--compile-cache {args.compile_cache}: the folder cannot be written")
@@ -213,14 +240,15 @@ def main(argv=None):
     print(f"{ua.SUBTASK} from {task.start}, optimum {task.optimal_steps} steps; Gymnasium adapter == jaxusar "
           f"SubtaskEnv on {checked} random steps")
 
-    jx_runs = [run_jaxusar(task, args.seeds, args.steps, args.chunk_steps) for _ in range(args.repeats)]
+    runs = args.repeats + bool(args.compile_cache)
+    jx_runs = [run_jaxusar(task, args.seeds, args.steps, args.chunk_steps) for _ in range(runs)]
     cold = jx_runs[0] if args.compile_cache else None
     warm = jx_runs[1:] if cold else jx_runs
-    jx = sorted(warm, key=lambda r: r["wall_s"])[len(warm) // 2]  # the median run
+    jx = sorted(warm, key=lambda r: r["wall_s"])[len(warm) // 2]  # the median run (of an even count, the slower middle one)
     assert all(r["episodes_to_optimal"] == jx["episodes_to_optimal"] for r in jx_runs)  # runs are deterministic
     jx["walls_s"] = [r["wall_s"] for r in jx_runs]
     total = args.seeds * args.steps
-    print(f"jaxusar (median of {args.repeats} runs, walls {[round(r['wall_s'], 2) for r in jx_runs]}): {args.seeds} trials x {args.steps} steps in {jx['wall_s']:.2f}s "
+    print(f"jaxusar (median of {len(warm)}{' warm' if cold else ''} runs, XLA CPU pool of {jax_threads} thread(s), walls {[round(r['wall_s'], 2) for r in jx_runs]}): {args.seeds} trials x {args.steps} steps in {jx['wall_s']:.2f}s "
           f"(init {jx['init_s']:.2f}s, of which {jx['init_s'] - jx['init_cached_s']:.2f}s compiling; chunk compile "
           f"{jx['compile_s']:.2f}s; run {jx['run_s']:.2f}s, of which the same updates alone take {jx['updates_alone_s']:.2f}s); "
           f"episodes to optimal {jx['episodes_to_optimal']}")
@@ -264,10 +292,10 @@ def main(argv=None):
     import stable_baselines3
 
     env_info = {**environment_info(), "torch": torch.__version__, "stable_baselines3": stable_baselines3.__version__,
-                "torch_threads": sb3[0]["torch_threads"] if sb3 else None}
+                "torch_threads": sb3[0]["torch_threads"] if sb3 else None, "jax_threads": jax_threads}
     result = {"task": ua.SUBTASK, "start": task.start, "optimal_steps": task.optimal_steps, "seeds": args.seeds,
               "env_steps_per_trial": args.steps, "test_every": TEST_EVERY, "gym_backend": args.gym_backend,
-              "jaxusar_repeats": args.repeats, "compile_cache": bool(args.compile_cache), "matched": MATCHED,
+              "jaxusar_repeats": len(warm), "compile_cache": bool(args.compile_cache), "matched": MATCHED,
               "sb3_settings": {k: v for k, v in sb3_settings(args.steps).items()}, "summary": rows,
               "jaxusar": jx, "sb3": sb3, "environment": env_info}
     print()
