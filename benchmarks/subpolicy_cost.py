@@ -2,7 +2,9 @@
 
 Builds the sub-policy trainer of ``--map`` for ``--trials`` trials (all tasks x trials as lanes), runs
 one chunk of ``--steps`` env steps per lane (compile, learning starts), then times a second one; each
-``--set`` list is one row. Intel Xeon numbers in benchmarks/README.md ("Sub-policy cost on big maps").
+``--set`` list is one row. Each row after the first also says whether its learner state after the two
+chunks is bit-identical to the first row's (the same seeds), so a setting meant to change only the cost
+can be checked to change nothing else. Numbers in benchmarks/README.md ("Sub-policy cost on big maps").
 
     python benchmarks/subpolicy_cost.py --map office --trials 8 \\
         --set dqn.one_hot_input=false --set dqn.one_hot_input=true
@@ -20,7 +22,8 @@ from jaxusar import algos, config
 from jaxusar.experiments import hierarchical
 
 
-def cost(map_name: str, trials: int, steps: int, sets: list[str]) -> tuple[int, float]:
+def cost(map_name: str, trials: int, steps: int, sets: list[str]):
+    """(lanes, seconds of the second chunk, the learner state after it)."""
     cfg = config.load(None, [f"env.map={map_name}", f"train.chunk_steps={steps}"] + sets,
                       defaults=algos.defaults("hierarchical"))
     b = hierarchical.build(cfg)
@@ -29,8 +32,15 @@ def cost(map_name: str, trials: int, steps: int, sets: list[str]) -> tuple[int, 
     state = trainer.run_chunk(trainer.init(jax.random.split(jax.random.PRNGKey(0), lanes), env_params=params))
     jax.block_until_ready(state)
     t = time.perf_counter()
-    jax.block_until_ready(trainer.run_chunk(state))
-    return lanes, time.perf_counter() - t
+    state = jax.block_until_ready(trainer.run_chunk(state))
+    return lanes, time.perf_counter() - t, state
+
+
+def identical(a, b) -> bool:
+    """Every leaf equal bit for bit (NaN, an unfilled record, equal to NaN)."""
+    la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+    return len(la) == len(lb) and all(x.shape == y.shape and bool(jnp.array_equal(x, y, equal_nan=True))
+                                      for x, y in zip(la, lb))
 
 
 def main() -> None:
@@ -40,11 +50,15 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=1000, help="env steps per lane in the timed chunk")
     p.add_argument("--set", dest="sets", action="append", default=[], help="one row's settings, comma-separated")
     args = p.parse_args()
+    first = None
     for row in args.sets or [""]:
         sets = [s for s in row.split(",") if s]
-        lanes, seconds = cost(args.map, args.trials, args.steps, sets)
+        lanes, seconds, state = cost(args.map, args.trials, args.steps, sets)
+        same = "" if first is None else \
+            f"; state {'bit-identical to' if identical(first, state) else 'differs from'} row 1"
+        first = state if first is None else first
         print(f"{args.map} {row or 'defaults':40s} {lanes} lanes: {seconds:6.1f} s per {args.steps} steps = "
-              f"{1e6 * seconds / (args.steps * lanes):5.0f} us per lane-step", flush=True)
+              f"{1e6 * seconds / (args.steps * lanes):5.0f} us per lane-step{same}", flush=True)
 
 
 if __name__ == "__main__":
