@@ -35,6 +35,21 @@ def test_train_iql_end_to_end(tmp_path, capsys):
     assert e.value.code == 2 and "--force" in capsys.readouterr().err
 
 
+def test_progress_gives_no_time_to_go_before_the_slowest_trial_has_moved(capsys):
+    """A chunk that ends no episode of the slowest trial (a resumed run starts part-way) has no pace to
+    extrapolate: the line says so instead of dividing by almost zero."""
+    from jaxusar.core.trainer import seconds_to_go
+    from jaxusar.experiments.train import print_progress
+
+    assert seconds_to_go(10.0, 0.2, 0.2) is None and seconds_to_go(10.0, 0.0, 0.0) is None
+    assert seconds_to_go(10.0, 0.2, 0.4) == pytest.approx(30.0)  # 0.2 in 10 s; 0.6 left
+    line = {"chunk": 1, "episodes_min": 0, "episodes_total": 4, "episodes_mean": 0.0, "elapsed": 0.4}
+    print_progress("x", {**line, "eta": None})
+    print_progress("x", {**line, "eta": 30.2})
+    first, second = capsys.readouterr().out.splitlines()
+    assert first.endswith("0 s elapsed, time to go not known yet") and second.endswith("about 30 s to go")
+
+
 @pytest.mark.parametrize("argv, message", [
     (["train", "iql", "--set", "dqn.gamma=2"], "dqn.gamma"),
     (["train", "iql", "--set", "train.nope=1"], "train.nope"),

@@ -145,6 +145,12 @@ def batch_bucket(live: int) -> int:
     return size * 3 // 4 if size >= 32 and live <= size * 3 // 4 else size
 
 
+def seconds_to_go(elapsed: float, start: float, now: float) -> float | None:
+    """Seconds left at the pace so far, ``elapsed`` seconds having moved the slowest trial from fraction
+    ``start`` to ``now`` of its episodes; None before it has moved (no pace to go by)."""
+    return elapsed * (1 - now) / (now - start) if now > start else None
+
+
 class Trainer:
     """Trains ``learner`` on ``env`` for ``cfg.episodes`` episodes per trial.
 
@@ -494,7 +500,8 @@ class Trainer:
 
     def train(self, keys: jax.Array, progress: Callable | None = None, state: TrainState | None = None,
               on_chunk: Callable | None = None, env_params=None) -> TrainState:
-        """Run chunks until every trial has ``episodes`` episodes. ``progress(info)`` after each chunk."""
+        """Run chunks until every trial has ``episodes`` episodes. ``progress(info)`` after each chunk; its
+        ``eta`` (seconds to go, from the slowest trial's pace) is None until that trial has moved."""
         state = self.init(keys, env_params) if state is None else state
         start, frac0 = time.perf_counter(), self._fraction_done(state)
         while not self.done(state):
@@ -508,7 +515,7 @@ class Trainer:
                 elapsed, frac = time.perf_counter() - start, self._fraction_done(state)
                 progress({"chunk": int(state.chunk), "episodes_min": int(eps.min()), "episodes_mean": float(eps.mean()),
                           "episodes_total": self.cfg.episodes, "elapsed": elapsed,
-                          "eta": elapsed * (1 - frac) / max(frac - frac0, 1e-9), "step": int(state.step)})
+                          "eta": seconds_to_go(elapsed, frac0, frac), "step": int(state.step)})
         return state
 
     def _fraction_done(self, state: TrainState) -> float:

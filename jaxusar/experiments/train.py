@@ -62,9 +62,9 @@ def cpu_name() -> str:
 
 def print_progress(name: str, p: dict) -> None:
     """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk)."""
+    to_go = "time to go not known yet" if p["eta"] is None else f"about {p['eta']:.0f} s to go"
     print(f"[{name}] chunk {p['chunk']}: episodes done {p['episodes_min']}/{p['episodes_total']} in the slowest "
-          f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, about {p['eta']:.0f} s to go",
-          flush=True)
+          f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, {to_go}", flush=True)
 
 
 def build(cfg: ExperimentConfig):
