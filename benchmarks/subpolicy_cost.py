@@ -54,9 +54,10 @@ def main() -> None:
     for row in args.sets or [""]:
         sets = [s for s in row.split(",") if s]
         lanes, seconds, state = cost(args.map, args.trials, args.steps, sets)
-        same = "" if first is None else \
-            f"; state {'bit-identical to' if identical(first, state) else 'differs from'} row 1"
-        first = state if first is None else first
+        if first is None:
+            first, same = state, ""
+        else:
+            same = f"; state {'bit-identical to' if identical(first, state) else 'differs from'} row 1"
         print(f"{args.map} {row or 'defaults':40s} {lanes} lanes: {seconds:6.1f} s per {args.steps} steps = "
               f"{1e6 * seconds / (args.steps * lanes):5.0f} us per lane-step{same}", flush=True)
 
