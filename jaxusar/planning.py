@@ -87,7 +87,8 @@ def _make_expander(env: USAREnv):
     joint = jnp.asarray(_joint_actions(env.n_agents))
 
     def successors(pos, dirs, triaged):
-        state = EnvState(pos, dirs, triaged, jnp.zeros(pos.shape[:1], jnp.int32))
+        base = jax.tree.map(lambda x: jnp.broadcast_to(x, (pos.shape[0], *x.shape)), env.initial_state())
+        state = base.replace(agent_pos=pos, agent_dir=dirs, triaged=triaged, progress=triaged.astype(jnp.int32))
 
         def one(s):
             step = lambda a: env.step(None, s, a)[1]

@@ -27,9 +27,14 @@ def small_env(grid: str, **overrides) -> envs.USAREnv:
 
 
 def state_of(env, pos, dirs, triaged=None, t=0) -> EnvState:
-    triaged = [False] * env.n_victims if triaged is None else triaged
-    return EnvState(agent_pos=jnp.asarray(pos, jnp.int32), agent_dir=jnp.asarray(dirs, jnp.int32),
-                    triaged=jnp.asarray(triaged, bool), t=jnp.asarray(t, jnp.int32))
+    """The reset state with the agents, triaged flags and clock given (seen: from the reset starts); a
+    leading batch axis on ``dirs`` batches every field."""
+    dirs = jnp.asarray(dirs, jnp.int32)
+    batch = dirs.shape[:-1]
+    triaged = np.zeros((*batch, env.n_victims), bool) if triaged is None else triaged
+    base = jax.tree.map(lambda x: jnp.broadcast_to(x, (*batch, *x.shape)), env.initial_state())
+    return base.replace(agent_pos=jnp.asarray(pos, jnp.int32), agent_dir=dirs, triaged=jnp.asarray(triaged, bool),
+                        progress=jnp.asarray(triaged, jnp.int32), t=jnp.broadcast_to(jnp.asarray(t, jnp.int32), batch))
 
 
 @functools.lru_cache(maxsize=None)

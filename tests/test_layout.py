@@ -153,7 +153,7 @@ def test_subset_keeps_map_and_chosen_agents_and_victims():
 def test_parse_with_and_without_header():
     grid = "A.#\n.XV\n..."
     plain = parse_layout(grid, regions_for(grid))
-    headed = parse_layout("; a comment\nsome header text\n---\n" + grid + "\n\n",
+    headed = parse_layout("; a comment\n; another\n---\n" + grid + "\n\n",
                           "; legend\n" + regions_for(grid), "headed")
     for layout in (plain, headed):
         assert layout.to_ascii() == grid
@@ -200,9 +200,9 @@ def test_unknown_map_name():
     ("A.Z\n..V", "unknown character 'Z' at row 0, col 2"),
     ("A.V\n.o.", "unknown character 'o' at row 1, col 1"),
     ("A.V \n... ", "unknown character ' '"),
-    ("...\n..V", "no agent start ('A')"),
-    ("A..\n...", "no victim ('V')"),
-    ("A.#V", "victim 0 at (0, 3) cannot be reached by any agent"),
+    ("...\n..V", "no agent start ('A' medic or 'E' engineer)"),
+    ("A..\n...", "no victim ('V' regular, 'C' critical"),
+    ("A.#V", "victim 0 at (0, 3) cannot be reached by any medic, even with every rubble cleared"),
     ("A.V\nXX.\n.VX\n.X.", "victim 1 at (2, 1) cannot be reached"),
     ("AX.\nX..\n..V", "victim 0 at (2, 2) cannot be reached"),
 ])

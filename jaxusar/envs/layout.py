@@ -2,14 +2,19 @@
 
 A map is two text files in ``jaxusar/envs/layouts/``:
 
-``NAME.txt``          the layout. Legend: ``#`` wall, ``X`` obstacle, ``.`` floor, ``V`` victim,
-                      ``A`` agent start. Agents and victims are numbered in row-major reading order.
+``NAME.txt``          the layout. Legend (``LAYOUT_CHARS``): ``#`` wall, ``X`` obstacle, ``.`` floor,
+                      ``V`` regular victim, ``C`` critical victim, ``A`` medic start, ``E`` engineer
+                      start, ``r`` rubble, ``?`` a cell where a victim may be drawn. Agents (``A``, ``E``)
+                      are numbered together in reading order, then the fixed victims (``V``, ``C``) in
+                      reading order; victims drawn at reset follow them (DESIGN.md, contract part 2).
+                      Header lines ``key: value`` before ``---`` set the map's env defaults
+                      (``HEADER_KEYS``; an ``envs.make`` override wins).
 ``NAME.regions.txt``  the region grid (the paper's graph view, Fig. 3): one letter per cell, ``#``
                       exactly on the wall and obstacle cells; its header names each letter
                       (``T top_room room``; the kind is ``room`` or ``hall``). A map without one is
                       segmented from its layout (``mapgen.segment``: rooms are the areas wide enough
-                      for 3x3 open cells, corridors and doorways are hall), and the grid is written
-                      beside it to inspect and edit.
+                      for 3x3 open cells, corridors and doorways are hall; rubble and ``?`` cells are
+                      open floor there), and the grid is written beside it to inspect and edit.
 ``NAME.settings.yaml`` optional: config settings that belong to this map (they name its tasks), merged
                       over an algorithm's defaults in every run on it (``jaxusar.config.load``).
 
@@ -20,14 +25,24 @@ are comments. A file without ``---`` is all grid.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 LAYOUT_DIR = Path(__file__).parent / "layouts"
-LAYOUT_CHARS = {"#": "wall", "X": "obstacle", ".": "floor", "V": "victim", "A": "agent start"}
+LAYOUT_CHARS = {"#": "wall", "X": "obstacle", ".": "floor", "V": "regular victim", "C": "critical victim",
+                "A": "medic start", "E": "engineer start", "r": "rubble", "?": "cell where a victim may be drawn"}
+MEDIC, ENGINEER = 0, 1
+ROLE_NAMES = ("MEDIC", "ENGINEER")
+REGULAR, CRITICAL = 0, 1
+KIND_NAMES = ("REGULAR", "CRITICAL")
 REGION_KINDS = ("room", "hall")
+OBSERVATIONS = ("full", "view")
+# Header keys of a layout and their defaults (DESIGN.md, contract part 2); None = "none".
+HEADER_KEYS = {"random_victims": (0, 0), "triage_steps": 1, "critical_triage_steps": 1, "critical_reward": 300.0,
+               "critical_expires": None, "view_radius": None, "observation": "full"}
 
 
 class LayoutError(ValueError):
@@ -42,11 +57,16 @@ class Layout:
       name:          the map's name.
       wall:          bool[H, W], wall cells.
       obstacle:      bool[H, W], obstacle cells.
-      agent_start:   int32[n_agents, 2], (row, col) of each agent's start, row-major order.
-      victim_pos:    int32[n_victims, 2], (row, col) of each victim, row-major order.
+      agent_start:   int32[n_agents, 2], (row, col) of each agent's start ('A' and 'E'), row-major order.
+      victim_pos:    int32[n_fixed, 2], (row, col) of each fixed victim ('V' and 'C'), row-major order.
       region:        int32[H, W], region index of each cell, -1 on wall and obstacle cells.
       region_names:  tuple[str], one per region, in order of first appearance in the header.
       region_kinds:  tuple[str], ``room`` or ``hall`` per region.
+      rubble:        bool[H, W], rubble cells ('r') at reset.
+      roles:         int32[n_agents], MEDIC (0, 'A') or ENGINEER (1, 'E').
+      victim_kind:   int32[n_fixed], REGULAR (0, 'V') or CRITICAL (1, 'C') per fixed victim.
+      random_cells:  int32[n_cells, 2], the '?' cells (row-major), where victims are drawn at reset.
+      header:        dict, the map's env defaults from its header (``HEADER_KEYS``; only keys it sets).
     """
 
     name: str
@@ -57,6 +77,19 @@ class Layout:
     region: np.ndarray
     region_names: tuple[str, ...]
     region_kinds: tuple[str, ...]
+    rubble: np.ndarray | None = None
+    roles: np.ndarray | None = None
+    victim_kind: np.ndarray | None = None
+    random_cells: np.ndarray | None = None
+    header: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):  # part-1 layouts (and code that builds one by hand) leave the part-2 fields out
+        defaults = {"rubble": np.zeros(self.wall.shape, bool), "roles": np.zeros(len(self.agent_start), np.int32),
+                    "victim_kind": np.zeros(len(self.victim_pos), np.int32),
+                    "random_cells": np.zeros((0, 2), np.int32)}
+        for field, value in defaults.items():
+            if getattr(self, field) is None:
+                object.__setattr__(self, field, value)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -67,28 +100,95 @@ class Layout:
         return self.wall | self.obstacle
 
     def to_ascii(self) -> str:
-        """The layout as the ASCII grid it was parsed from."""
+        """The layout's grid as the ASCII it was parsed from (without its header)."""
         grid = np.full(self.shape, ".", dtype="<U1")
         grid[self.wall] = "#"
         grid[self.obstacle] = "X"
-        for r, c in self.victim_pos:
-            grid[r, c] = "V"
-        for r, c in self.agent_start:
-            grid[r, c] = "A"
+        grid[self.rubble] = "r"
+        for r, c in self.random_cells:
+            grid[r, c] = "?"
+        for (r, c), kind in zip(self.victim_pos, self.victim_kind):
+            grid[r, c] = "VC"[kind]
+        for (r, c), role in zip(self.agent_start, self.roles):
+            grid[r, c] = "AE"[role]
         return "\n".join("".join(row) for row in grid)
 
     def subset(self, agents=None, victims=None) -> "Layout":
-        """The same map with only the given agents and victims (by index; order kept).
+        """The same map with only the given agents and fixed victims (by index; order kept).
 
         Used for the paper's sub-tasks, where "the other agents and victims are removed" (Sec. IV-B).
+        Naming ``victims`` also removes the victims drawn at reset (their '?' cells become floor).
         """
         agents = range(len(self.agent_start)) if agents is None else list(agents)
+        drawn = {}
+        if victims is not None:
+            drawn = {"random_cells": np.zeros((0, 2), np.int32),
+                     "header": {k: v for k, v in self.header.items() if k != "random_victims"}}
         victims = range(len(self.victim_pos)) if victims is None else list(victims)
         return dataclasses.replace(
             self,
             agent_start=self.agent_start[list(agents)].reshape(-1, 2),
+            roles=self.roles[list(agents)],
             victim_pos=self.victim_pos[list(victims)].reshape(-1, 2),
+            victim_kind=self.victim_kind[list(victims)],
+            **drawn,
         )
+
+
+def header_value(key: str, value, where: str):
+    """A map setting checked and normalised (``HEADER_KEYS``): from a layout header (a string) or an
+    ``envs.make`` override. Raises LayoutError naming ``where`` and the key."""
+    if key not in HEADER_KEYS:
+        raise LayoutError(f"{where}: unknown key {key!r}; known keys: {', '.join(HEADER_KEYS)}")
+
+    def bad(expected):
+        return LayoutError(f"{where}: {key}={value!r}: expected {expected}")
+
+    def integer(x, least):
+        if isinstance(x, str):
+            try:
+                x = int(x.strip())
+            except ValueError:
+                raise bad(f"an integer >= {least}") from None
+        if isinstance(x, bool) or not isinstance(x, numbers.Integral) or x < least:
+            raise bad(f"an integer >= {least}")
+        return int(x)
+
+    if key == "random_victims":
+        parts = value.split() if isinstance(value, str) else value
+        if not isinstance(parts, (list, tuple)) or len(parts) != 2:
+            raise bad("two integers >= 0: N_REGULAR N_CRITICAL")
+        return tuple(integer(x, 0) for x in parts)
+    if key in ("triage_steps", "critical_triage_steps"):
+        return integer(value, 1)
+    if key in ("critical_expires", "view_radius"):
+        if value is None or (isinstance(value, str) and value.strip().lower() == "none"):
+            return None
+        return integer(value, 1 if key == "critical_expires" else 0)
+    if key == "critical_reward":
+        try:
+            number = float(value.strip() if isinstance(value, str) else value)
+        except (TypeError, ValueError):
+            raise bad("a number") from None
+        if isinstance(value, bool) or not np.isfinite(number):
+            raise bad("a finite number")
+        return number
+    if value not in OBSERVATIONS:  # observation
+        raise bad(f"one of {', '.join(OBSERVATIONS)}")
+    return value
+
+
+def _parse_header(lines: list[str], name: str) -> dict:
+    header = {}
+    for line in lines:
+        key, colon, value = line.partition(":")
+        key = key.strip()
+        if not colon or not key:
+            raise LayoutError(f"layout {name!r}: header line {line!r} is not 'key: value' (or a ';' comment)")
+        if key in header:
+            raise LayoutError(f"layout {name!r}: header key {key!r} is set twice")
+        header[key] = header_value(key, value.strip(), f"layout {name!r} header")
+    return header
 
 
 def _split_header(text: str, what: str) -> tuple[list[str], list[str]]:
@@ -117,7 +217,8 @@ def _split_header(text: str, what: str) -> tuple[list[str], list[str]]:
 
 def parse_layout(text: str, regions_text: str, name: str = "<string>") -> Layout:
     """Parse and validate a layout and its region grid. Raises LayoutError naming the problem."""
-    _, grid = _split_header(text, f"layout {name!r}")
+    header_lines, grid = _split_header(text, f"layout {name!r}")
+    header = _parse_header(header_lines, name)
     chars = np.array([list(row) for row in grid])
     unknown = sorted(map(str, set(chars.ravel()) - set(LAYOUT_CHARS)))  # str: np.str_ reprs as np.str_(...)
     if unknown:
@@ -127,17 +228,74 @@ def parse_layout(text: str, regions_text: str, name: str = "<string>") -> Layout
             f"legend: " + ", ".join(f"{k!r} {v}" for k, v in LAYOUT_CHARS.items())
         )
     wall, obstacle = chars == "#", chars == "X"
-    agent_start = np.argwhere(chars == "A").astype(np.int32)
-    victim_pos = np.argwhere(chars == "V").astype(np.int32)  # argwhere is row-major order
+    agent_start = np.argwhere(np.isin(chars, ["A", "E"])).astype(np.int32)  # argwhere is row-major order
+    victim_pos = np.argwhere(np.isin(chars, ["V", "C"])).astype(np.int32)
     if len(agent_start) == 0:
-        raise LayoutError(f"layout {name!r}: no agent start ('A')")
-    if len(victim_pos) == 0:
-        raise LayoutError(f"layout {name!r}: no victim ('V')")
+        raise LayoutError(f"layout {name!r}: no agent start ('A' medic or 'E' engineer)")
 
     region, names, kinds = _parse_regions(regions_text, chars.shape, wall | obstacle, name)
-    layout = Layout(name, wall, obstacle, agent_start, victim_pos, region, names, kinds)
+    layout = Layout(name, wall, obstacle, agent_start, victim_pos, region, names, kinds,
+                    rubble=chars == "r", roles=(chars[tuple(agent_start.T)] == "E").astype(np.int32),
+                    victim_kind=(chars[tuple(victim_pos.T)] == "C").astype(np.int32),
+                    random_cells=np.argwhere(chars == "?").astype(np.int32), header=header)
+    check_victims(layout, header.get("random_victims", HEADER_KEYS["random_victims"]))
     _check_reachable(layout)
     return layout
+
+
+def check_victims(layout: Layout, random_victims: tuple[int, int]) -> None:
+    """The victims a map gets with ``random_victims`` drawn over its '?' cells can exist and be triaged."""
+    where, drawn, cells = f"layout {layout.name!r}", sum(random_victims), len(layout.random_cells)
+    if cells and not drawn:
+        raise LayoutError(f"{where}: {cells} '?' cells but no victims drawn on them; set the header line "
+                          "'random_victims: N_REGULAR N_CRITICAL' (or turn the '?' cells into '.')")
+    if drawn > cells:
+        raise LayoutError(f"{where}: random_victims={tuple(random_victims)} draws {drawn} victims but the map has "
+                          f"only {cells} '?' cells to draw them on")
+    if len(layout.victim_pos) + drawn == 0:
+        raise LayoutError(f"{where}: no victim ('V' regular, 'C' critical, or random_victims over '?' cells)")
+    if not np.any(layout.roles == MEDIC):
+        raise LayoutError(f"{where}: victims but no medic ('A') to triage them (engineers 'E' only clear rubble)")
+
+
+def _neighbours(mask: np.ndarray) -> np.ndarray:
+    """bool[H, W]: cells 4-adjacent to some cell of ``mask``."""
+    near = np.zeros_like(mask)
+    near[1:] |= mask[:-1]
+    near[:-1] |= mask[1:]
+    near[:, 1:] |= mask[:, :-1]
+    near[:, :-1] |= mask[:, 1:]
+    return near
+
+
+def _check_reachable(layout: Layout) -> None:
+    """Every victim (and every '?' cell a victim may be drawn on) must be triageable: a medic can reach a
+    cell next to it, ignoring other agents, through rubble only where engineers can clear it first
+    (an engineer clears rubble next to a cell it can reach, which may open more rubble to it)."""
+    solid = layout.blocked.copy()
+    solid[tuple(layout.victim_pos.T)] = True
+    starts = lambda role: [tuple(int(x) for x in cell) for cell in layout.agent_start[layout.roles == role]]
+    reach = lambda open_, role: _geodesic(open_, starts(role))[0] >= 0
+    cleared = np.zeros_like(layout.rubble)
+    while True:  # rubble the engineers can clear, in waves
+        reachable = _neighbours(reach(~solid & ~(layout.rubble & ~cleared), ENGINEER))
+        newly = layout.rubble & ~cleared & reachable
+        if not newly.any():
+            break
+        cleared |= newly
+    medics = _neighbours(reach(~solid & ~(layout.rubble & ~cleared), MEDIC))
+    medics_all_clear = _neighbours(reach(~solid, MEDIC))
+    targets = [(f"victim {v}", cell) for v, cell in enumerate(layout.victim_pos)]
+    if layout.header.get("random_victims", (0, 0)) != (0, 0):
+        targets += [("'?' cell", cell) for cell in layout.random_cells]
+    for what, (r, c) in targets:
+        if not medics_all_clear[r, c]:
+            raise LayoutError(f"layout {layout.name!r}: {what} at ({r}, {c}) cannot be reached by any medic, "
+                              "even with every rubble cleared")
+        if not medics[r, c]:
+            why = ("no engineer can reach the rubble in the way" if np.any(layout.roles == ENGINEER)
+                   else "the map has no engineer ('E') to clear it")
+            raise LayoutError(f"layout {layout.name!r}: {what} at ({r}, {c}) is behind rubble and {why}")
 
 
 def _parse_regions(text, shape, blocked, name):
@@ -192,18 +350,6 @@ def _geodesic(mask: np.ndarray, seeds) -> tuple[np.ndarray, np.ndarray]:
                     nxt.append((nr, nc))
         frontier = nxt
     return dist, owner
-
-
-def _check_reachable(layout: Layout) -> None:
-    """Every victim must be triageable: some agent can reach a cell next to it (ignoring other agents)."""
-    h, w = layout.shape
-    solid = layout.blocked.copy()
-    solid[tuple(layout.victim_pos.T)] = True
-    seen = _geodesic(~solid, [tuple(int(x) for x in cell) for cell in layout.agent_start])[0] >= 0
-    for v, (r, c) in enumerate(layout.victim_pos):
-        near = [(r + dr, c + dc) for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))]
-        if not any(0 <= nr < h and 0 <= nc < w and seen[nr, nc] for nr, nc in near):
-            raise LayoutError(f"layout {layout.name!r}: victim {v} at ({r}, {c}) cannot be reached by any agent")
 
 
 def available_layouts() -> list[str]:
