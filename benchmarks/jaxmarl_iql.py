@@ -37,10 +37,25 @@ Where we depart from the script, and why:
 * No wandb, no hydra: ``config`` is a dict with the script's key names.
 
 Settings are the caller's (``benchmarks/vs_jaxmarl.py`` matches them to jaxusar's IQL).
+
+Run alone, it trains on any map through the package's adapter ``jaxusar.interop.JaxMARLEnv`` (JaxMARL's
+``MultiAgentEnv`` API: what a JaxMARL user's learner sees), all seeds in one call:
+
+    python benchmarks/jaxmarl_iql.py --map two_rooms_rubble --seeds 2 --steps 40000
+    python benchmarks/jaxmarl_iql.py --map minimap --horizon 100 --set TEST_EVERY_EPISODES=20 --out r.json
+
+It prints the wall time (compile + run), the training episodes, the greedy tests' returns, and the training
+episodes to the first test with a triage and to the first optimal test (where the map's optimum is known:
+``--optimal-steps``, or the planner's exact optimum on maps with fixed victims).
 """
 
 from __future__ import annotations
 
+import argparse
+import ast
+import json
+import time
+from pathlib import Path
 from typing import Any, Sequence
 
 import chex
@@ -300,3 +315,96 @@ def episodes_to(results: dict, every: int, optimal_steps: int) -> dict:
         out["optimal"].append(int((opt[0] + 1) * every) if len(opt) else None)
         out["first_triage"].append(int((tri[0] + 1) * every) if len(tri) else None)
     return out
+
+
+def optimum(env, given: int | None) -> int | None:
+    """Fewest team steps to triage every victim: ``given``, else the planner's exact search where it
+    runs (fixed victims, a joint search within its limit), else None."""
+    if given is not None:
+        return given
+    from jaxusar import planning
+
+    try:
+        return int(planning.optimal_team_steps(env))
+    except (ValueError, planning.SearchTooLarge) as e:
+        print(f"no exact optimum for {env.layout.name!r} ({type(e).__name__}): episodes to optimal not reported",
+              flush=True)
+        return None
+
+
+def main(argv=None):
+    from jaxusar import envs
+    from jaxusar.interop import JaxMARLEnv
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--map", default="two_rooms", help="a jaxusar map (jaxusar.envs.available_layouts())")
+    p.add_argument("--horizon", type=int, default=300)
+    p.add_argument("--observation", choices=["full", "view"], help="default: the map's own")
+    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--steps", type=int, default=40_000, help="env steps per seed (TOTAL_TIMESTEPS)")
+    p.add_argument("--no-sharing", action="store_true", help="one network per agent (default: JaxMARL's sharing)")
+    p.add_argument("--optimal-steps", type=int, help="the map's optimum in team steps (default: the planner's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help=f"any other setting of {sorted(DEFAULTS)} (a Python literal)")
+    p.add_argument("--out", help="write the results as JSON here")
+    args = p.parse_args(argv)
+
+    overrides = {"horizon": args.horizon, **({"observation": args.observation} if args.observation else {})}
+    adapter = JaxMARLEnv(envs.make(args.map, **overrides))
+    optimal = optimum(adapter.env, args.optimal_steps)
+    config = {"TOTAL_TIMESTEPS": args.steps, "PARAMETER_SHARING": not args.no_sharing,
+              "OPTIMAL_STEPS": optimal, "MIN_EPISODE_STEPS": optimal or 1}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in DEFAULTS:
+            raise SystemExit(f"--set {item}: unknown setting {key!r}; known: {sorted(DEFAULTS)}")
+        config[key] = ast.literal_eval(value)
+    every = config.get("TEST_EVERY_EPISODES", DEFAULTS["TEST_EVERY_EPISODES"])
+
+    start = time.perf_counter()
+    train = jax.jit(jax.vmap(make_train(config, adapter)))
+    rngs = jax.random.split(jax.random.PRNGKey(0), args.seeds)
+    compiled = train.lower(rngs).compile()
+    compile_s = time.perf_counter() - start
+    t = time.perf_counter()
+    out = jax.device_get(jax.block_until_ready(compiled(rngs)))
+    run_s = time.perf_counter() - t
+    wall_s = time.perf_counter() - start
+
+    lengths, returns = np.asarray(out["test_lengths"]), np.asarray(out["test_returns"])
+    ran = lengths > 0
+    eto = episodes_to(out, every, optimal if optimal is not None else -1)
+    result = {
+        "map": args.map, "env": repr(adapter.env), "agents": adapter.agents, "obs_dim": adapter.obs_dim,
+        "optimal_team_steps": optimal, "seeds": args.seeds, "env_steps_per_seed": args.steps,
+        "config": {**DEFAULTS, **config}, "wall_s": wall_s, "compile_s": compile_s, "run_s": run_s,
+        "env_steps_per_s": args.seeds * args.steps / wall_s,
+        "training_episodes": np.asarray(out["episodes"]).tolist(),
+        "tests_run": ran.sum(1).tolist(), "tests_abandoned": np.asarray(out["tests_abandoned"]).tolist(),
+        "best_test_return": [float(r[m].max()) if m.any() else None for r, m in zip(returns, ran)],
+        "last_test_return": [float(r[m][-1]) if m.any() else None for r, m in zip(returns, ran)],
+        "episodes_to_first_triage": eto["first_triage"],
+        "episodes_to_optimal": eto["optimal"] if optimal is not None else None,
+    }
+    try:
+        from jaxusar.experiments.train import environment_info
+
+        result["environment"] = environment_info()
+    except ImportError:
+        pass
+    print(f"JaxMARL IQL ({'shared' if not args.no_sharing else 'per-agent'} network) on {adapter.env!r} through "
+          f"jaxusar.interop.JaxMARLEnv: {args.seeds} seeds x {args.steps} env steps")
+    print(f"wall {wall_s:.1f}s (compile {compile_s:.1f}s, run {run_s:.1f}s), "
+          f"{result['env_steps_per_s']:,.0f} env steps/s")
+    for key in ("training_episodes", "tests_run", "best_test_return", "last_test_return",
+                "episodes_to_first_triage", "episodes_to_optimal"):
+        print(f"  {key:26} {result[key]}")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=2, default=float))
+        print(f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,4 +1,6 @@
-"""The two-rooms USAR env in the APIs of the peers we benchmark against (never imported by the package).
+"""The navigation sub-task of the peer benchmark against Stable-Baselines3, as a Gymnasium env (never
+imported by the package). The multi-agent task's JaxMARL env is the package's adapter,
+``jaxusar.interop.JaxMARLEnv`` (used by ``vs_jaxmarl.py`` and ``jaxmarl_iql.py``).
 
 * ``navigation_subtask(env)``: the sub-task of the peer benchmark against Stable-Baselines3: agent 1
   (the bottom medic, start (9, 0) facing NORTH) NAVIGATE-TO-TOP-ROOM on the pseudo-reward of
@@ -11,10 +13,6 @@
   ``jaxusar.envs.usar.apply_actions`` for one agent on the task's map arrays (``backend="numpy"``,
   the fast path a Gymnasium user would write), or the package's jitted ``SubtaskEnv.step`` called
   once per step (``backend="jax"``). ``check_gym_matches_jax`` rolls both against the package's env.
-* ``USARMultiAgentEnv``: the two-agent task as a JaxMARL ``MultiAgentEnv`` (agents ``medic_0``,
-  ``medic_1``; each sees the full 60-float observation, as jaxusar's IQL learners do; the team
-  reward goes to both; ``dones["__all__"]`` at all-triaged or the horizon; the inherited ``step``
-  auto-resets, the JaxMARL convention).
 """
 
 from __future__ import annotations
@@ -138,46 +136,3 @@ def check_gym_matches_jax(task: Subtask, episodes: int = 20, seed: int = 0) -> i
     assert 0 < reached < episodes, f"{reached} of {episodes} random episodes reached the room: a weak check"
     return steps
 
-
-def make_multiagent_env(horizon: int = 300, **overrides):
-    """The two-agent task as a JaxMARL ``MultiAgentEnv`` (needs the ``bench`` extra)."""
-    from jaxmarl.environments.multi_agent_env import MultiAgentEnv
-    from jaxmarl.environments.spaces import Box, Discrete
-
-    class USARMultiAgentEnv(MultiAgentEnv):
-        """jaxusar's two-rooms env behind JaxMARL's dict-per-agent API (see the module docstring)."""
-
-        def __init__(self, env):
-            super().__init__(num_agents=env.n_agents)
-            self.env = env
-            self.agents = [f"medic_{i}" for i in range(env.n_agents)]
-            self.observation_spaces = {a: Box(0.0, 1.0, (env.obs_dim,)) for a in self.agents}
-            self.action_spaces = {a: Discrete(N_ACTIONS) for a in self.agents}
-
-        @property
-        def name(self) -> str:
-            return "USAR_two_rooms"
-
-        def get_obs(self, state):
-            obs = self.env.observe(state)
-            return {a: obs for a in self.agents}
-
-        def reset(self, key):
-            obs, state = self.env.reset(key)
-            return {a: obs for a in self.agents}, state
-
-        def step_env(self, key, state, actions):
-            joint = jnp.stack([actions[a] for a in self.agents]).astype(jnp.int32)
-            obs, state, reward, done, info = self.env.step(key, state, joint)
-            rewards = {a: reward for a in self.agents}
-            dones = {**{a: done for a in self.agents}, "__all__": done}
-            return {a: obs for a in self.agents}, state, rewards, dones, info
-
-        def get_avail_actions(self, state):
-            return {a: jnp.ones((N_ACTIONS,), bool) for a in self.agents}
-
-        @property
-        def agent_classes(self) -> dict:
-            return {"medic": list(self.agents)}
-
-    return USARMultiAgentEnv(envs.make("two_rooms", horizon=horizon, **overrides))

@@ -8,7 +8,9 @@ trials in one call on each side; a greedy test every 50 training episodes.
 
 * jaxusar: ``jaxusar.experiments.train.build`` (IQL) -> ``Trainer``, chunks run to the step budget.
 * JaxMARL: ``benchmarks/jaxmarl_iql.py`` (JaxMARL's IQL structure on jaxmarl's ``CTRolloutManager``
-  and flashbax; see its docstring for what it is and is not) on ``usar_adapters.make_multiagent_env``,
+  and flashbax; see its docstring for what it is and is not) on the package's JaxMARL adapter,
+  ``jaxusar.interop.JaxMARLEnv`` (agents ``agent_0``, ``agent_1``; each sees the full 60-float
+  observation, as jaxusar's IQL learners do; the team reward goes to both; JaxMARL's auto-reset),
   ``jax.jit(jax.vmap(train))(rngs)``, with parameter sharing (JaxMARL's default) and without.
 
 Wall time = compile + run on both sides (jaxusar: + ``Trainer.init``; its ``build``, which runs the
@@ -33,9 +35,9 @@ import jax
 import numpy as np
 
 import jaxmarl_iql as jm
-import usar_adapters as ua
-from jaxusar import config
+from jaxusar import config, envs
 from jaxusar.experiments.train import build, environment_info
+from jaxusar.interop import JaxMARLEnv
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "iql.yaml"
 OPTIMAL_TEAM_STEPS = 18
@@ -94,7 +96,7 @@ def run_jaxusar(cfg, seeds: int, steps: int) -> dict:
 
 def run_jaxmarl(config_dict: dict, seeds: int) -> dict:
     start = time.perf_counter()
-    env = ua.make_multiagent_env(horizon=300)
+    env = JaxMARLEnv(envs.make("two_rooms", horizon=300))
     train = jax.jit(jax.vmap(jm.make_train(config_dict, env)))
     rngs = jax.random.split(jax.random.PRNGKey(0), seeds)
     compiled = train.lower(rngs).compile()
