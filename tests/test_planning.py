@@ -326,3 +326,256 @@ def test_team_reference_is_the_optimum_where_the_search_runs_else_the_lower_boun
     # the optimality gap: a trial's shortest solving test over the bound; None where nothing was solved
     got = reference_metrics(ref, {"episodes_to_solved": [40, None, 7], "best_length": np.array([30, 300, 25])})
     assert got["optimality_gap"] == [1.2, None, 1.0] and got["team_lower_bound"] == 25
+
+
+# -- contract part 2: rubble, engineers, multi-step triage, expiry, drawn victims ----------------------
+F, L, R, T = envs.FORWARD, envs.TURN_LEFT, envs.TURN_RIGHT, envs.TRIAGE
+
+
+def part2_env(grid: str, header: str = "", **overrides) -> envs.USAREnv:
+    """A hand map with part 2's characters (r C E ?) and an optional layout header, one region."""
+    text = f"{header}\n---\n{grid}" if header else grid
+    return envs.make(envs.parse_layout(text, regions_for(grid), "small"), **overrides)
+
+
+def replay(env, plan, state=None):
+    """(state, rewards, dones) after replaying ``plan`` int[T, n_agents] through ``env.step``."""
+    step = jax.jit(env.step)
+    state = env.initial_state() if state is None else state
+    rewards, dones = [], []
+    for actions in plan:
+        _, state, reward, done, _ = step(None, state, jnp.asarray(actions, jnp.int32))
+        rewards.append(float(reward)), dones.append(bool(done))
+    return state, np.asarray(rewards), np.asarray(dones)
+
+
+# The engineer (agent 0) starts 3 cells above the rubble that walls in the victim; the medic (agent 1) can
+# face the victim only from the rubble's cell.
+RUBBLE_WAIT = "##E#\n##.#\n##.#\n##.#\nA.rV"
+# One victim needing 4 TRIAGE actions between two medics facing EAST (agent 1 must turn round first).
+SHARED = "A.V.A"
+# One medic facing EAST; a critical victim 4 cells west, regular ones north-east and south-east of it.
+EXPIRY = ".....V\nC...A.\n.....V"
+EXPIRY_SETTINGS = dict(start_dir=envs.EAST, critical_expires=8, horizon=15, step_penalty=-1.0)
+
+
+@pytest.fixture(scope="module")
+def rubble_map():
+    env = envs.make("two_rooms_rubble")
+    return env, planning.optimal_team_plan(env)
+
+
+def test_two_rooms_rubble_exact_optimum_replayed(rubble_map):
+    """The paper's map with the engineer and the rubble in the bottom room's doorway: still 18 steps (the
+    engineer clears the doorway before the top medic gets there), proven by the lower bound (rubble as
+    floor) and a plan that does it through env.step."""
+    env, plan = rubble_map
+    assert env.has_rubble and env.has_engineers and env.n_agents == 3
+    assert plan.shape == (18, 3) and planning.optimal_team_steps(env) == 18
+    state, rewards, dones = replay(env, plan)
+    assert np.all(state.triaged) and rewards.sum() == 200.0
+    np.testing.assert_array_equal(dones, np.arange(1, 19) == 18)
+    assert not np.asarray(state.rubble)[6:8, 12].all()  # the engineer cleared the doorway
+    assert planning.team_lower_bound(env) == 18
+    assert planning.team_reference(env) == {"steps": 18, "reference": "optimum", "lower_bound": 18}
+
+
+def test_rubble_forces_the_engineer_first():
+    """Hand count: the engineer walks 3 cells (steps 1-3) and clears the rubble (step 4); the medic turns
+    EAST (1), steps to (4, 1) (2), waits (3), enters the cleared cell (4: the engineer acts first) and
+    triages (5). Without the rubble the medic would need 4; the bound (rubble as floor) says 4."""
+    env = part2_env(RUBBLE_WAIT, start_dir=envs.SOUTH)
+    assert env.roles.tolist() == [envs.ENGINEER, envs.MEDIC]
+    plan = planning.optimal_team_plan(env)
+    assert len(plan) == planning.optimal_team_steps(env) == 5
+    assert planning.team_lower_bound(env) == 4
+    state, rewards, dones = replay(env, plan[:4])
+    assert not bool(state.rubble[4, 2]) and not bool(state.triaged[0])
+    assert plan[3, 0] == T and plan[3, 1] == F  # the engineer's tool and the medic's step in one step
+    state, rewards, dones = replay(env, plan[4:], state)
+    assert bool(state.triaged[0]) and dones[-1]
+    # no engineer: the map is refused (the victim cannot be reached)
+    with pytest.raises(envs.LayoutError, match="behind rubble"):
+        part2_env(RUBBLE_WAIT.replace("E", "#"), start_dir=envs.SOUTH)
+
+
+@pytest.mark.parametrize("steps, optimum", [(1, 2), (2, 3), (3, 4)])
+def test_multi_step_triage_adds_steps(steps, optimum):
+    """One medic facing EAST: FORWARD, then one TRIAGE per step the victim needs."""
+    env = part2_env("A.V", start_dir=envs.EAST, triage_steps=steps)
+    assert planning.optimal_team_steps(env) == optimum
+    assert planning.team_lower_bound(env) == optimum  # one medic: the bound is exact
+
+
+def test_shared_triage_and_the_bound():
+    """Medic 0: F, T, T, T; medic 1: L, L, F, T: the 4th TRIAGE action lands at step 4. A bound that charged
+    all 4 actions to one medic would say 5 (F + 4 x T) > the optimum; the bound charges ceil(4 / 2)."""
+    env = part2_env(SHARED, start_dir=envs.EAST, triage_steps=4)
+    assert planning.optimal_team_steps(env) == 4
+    state, rewards, _ = replay(env, [[F, L], [T, L], [T, F], [T, T]])
+    assert bool(state.triaged[0]) and rewards.sum() == 100.0
+    assert planning.team_lower_bound(env) == 3 <= 4
+
+
+def test_saving_the_critical_victim_beats_triaging_more_regulars():
+    """Highest return, not fewest steps. Victims: 0 regular (0, 5), 1 critical (1, 0), 2 regular (2, 5);
+    the medic at (1, 4) faces EAST; the critical victim dies at step 8, the horizon is 15, -1 per step.
+
+    Regulars first: F, L, T (victim 0 at step 3), L, L, T (victim 2 at step 6); the critical victim dies
+    at 8 and the episode ends: 200 - 8 = 192. Critical first: R, R, F, F, F, T (saved at step 6), then R, F,
+    R, F, F, F, T (victim 0 at step 13); victim 2 is out of reach by 15 (it needs (1, 5) facing SOUTH or
+    (2, 4) facing EAST: 4 more steps at least), so the episode runs to the horizon: 400 - 15 = 385.
+    Saving all three takes 17 steps (the fewest that triage everyone), past the horizon.
+    """
+    env = part2_env(EXPIRY, **EXPIRY_SETTINGS)
+    best = planning.optimal_team_return(env)
+    assert best["return"] == 385.0 and best["steps"] == 15
+    np.testing.assert_array_equal(best["triaged"], [True, True, False])
+    state, rewards, dones = replay(env, best["plan"])
+    assert rewards.sum() == 385.0 and dones[-1] and not dones[:-1].any()
+    regulars_first = [F, L, T, L, L, T, R, F]
+    state, rewards, dones = replay(env, np.asarray(regulars_first)[:, None])
+    assert rewards.sum() == 192.0 and dones[-1] and not dones[:-1].any() and bool(state.dead[1])
+    assert planning.optimal_team_steps(env) == 17  # ignores the horizon; saves the critical in time
+    ref = planning.team_reference(env)
+    assert ref == {"steps": 15, "reference": "optimum", "lower_bound": 8, "return": 385.0,
+                   "return_reference": "optimum"}
+    assert planning.team_return_bound(env) >= 385.0
+    # the critical victim gone before anyone can reach it: regulars only, ending when it dies at 5
+    late = part2_env(EXPIRY, **{**EXPIRY_SETTINGS, "critical_expires": 5})
+    best = planning.optimal_team_return(late)
+    assert best["return"] == 200.0 - 6 and best["steps"] == 6
+
+
+@pytest.mark.parametrize("name", ["rubble_wait", "shared", "expiry", "engineer_and_critical"])
+def test_bounds_never_cross_the_exact_optimum(name):
+    env = {
+        "rubble_wait": lambda: part2_env(RUBBLE_WAIT, start_dir=envs.SOUTH),
+        "shared": lambda: part2_env(SHARED, start_dir=envs.EAST, triage_steps=4),
+        "expiry": lambda: part2_env(EXPIRY, **EXPIRY_SETTINGS),
+        # a medic, an engineer, rubble between the medic and a critical victim needing 2 TRIAGE actions
+        "engineer_and_critical": lambda: part2_env("V.r.C\nA.#.E", critical_triage_steps=2, critical_expires=12,
+                                                   start_dir=envs.EAST, horizon=30),
+    }[name]()
+    exact = planning.optimal_team_steps(env)
+    assert 0 < planning.team_lower_bound(env) <= exact
+    best = planning.optimal_team_return(env)
+    assert planning.episode_lower_bound(env) <= best["steps"]
+    assert planning.team_return_bound(env) >= best["return"]
+    state, rewards, dones = replay(env, best["plan"])
+    assert rewards.sum() == pytest.approx(best["return"]) and dones[-1] and not dones[:-1].any()
+
+
+def brute_force_return(env) -> tuple[float, int]:
+    """(highest return, its fewest steps) with no shortcut: every state kept per time step (no state
+    reached earlier stands in for a later one), nothing cut, every episode run to its end. The successors
+    are the planner's (the env's step), the search around them is independent of it."""
+    from jaxusar.planning import search
+
+    codec, expand = search._Codec(env), search._expander(env)
+    start = env.complete(env.initial_state())
+    worth = np.where(env.victim_kind == envs.CRITICAL, env.critical_reward, env.triage_reward)
+    layer, best = codec.encode(codec.of(start)), (-np.inf, 0)
+    for t in range(env.horizon + 1):
+        s = codec.decode(layer)
+        dead = (env.victim_kind == envs.CRITICAL) & ~s.triaged & (t >= (env.critical_expires or np.inf))
+        ended = (s.triaged | dead).all(1) | (t >= env.horizon)
+        for value in s.triaged[ended] @ worth + env.step_penalty * t:
+            best = max(best, (value, -t))
+        s = s.take(np.flatnonzero(~ended))
+        if not len(s.dirs):
+            break
+        out = [np.asarray(x) for x in expand(start, s.pos, s.dirs, s.progress, s.rubble, jnp.int32(t))]
+        n = len(s.dirs) * 4 ** env.n_agents
+        layer = np.unique(codec.encode(search.States(out[0].reshape(n, -1, 2), out[1].reshape(n, -1),
+                                                     out[2].reshape(n, -1), None, out[3].reshape(n, -1)
+                                                     if out[3].size else np.zeros((n, 0), bool))))
+    return float(best[0]), -best[1]
+
+
+@pytest.mark.parametrize("name", ["rubble_wait", "shared", "expiry", "corridor"])
+def test_return_and_steps_searches_match_brute_force(name):
+    """The highest-return search (first visits, cuts, rounds, episodes that wait) and the cut fewest-steps
+    search against the searches without them. "corridor": the two medics (0, 1), (0, 2) and the engineer
+    (2, 2) share a dead-end corridor and can never pass each other, so no one is ever triaged (return 0
+    at the horizon), though each alone could; the relaxed bounds cannot see it."""
+    env = {
+        "rubble_wait": lambda: part2_env(RUBBLE_WAIT, start_dir=envs.SOUTH, horizon=8, step_penalty=-1.0),
+        "shared": lambda: part2_env(SHARED, start_dir=envs.EAST, triage_steps=4, horizon=6),
+        "expiry": lambda: part2_env(EXPIRY, **EXPIRY_SETTINGS),
+        "corridor": lambda: part2_env("#AA.\nVr#.\n.CE.", start_dir=envs.SOUTH, horizon=14, critical_expires=7,
+                                      critical_triage_steps=2, triage_steps=2),
+    }[name]()
+    best = planning.optimal_team_return(env)
+    assert (best["return"], best["steps"]) == brute_force_return(env)
+    try:
+        plain = planning._search(env, env.initial_state(), planning._all_triaged, 1_000_000)[0]
+    except planning.Unreachable:
+        plain = None
+    if plain is None:
+        with pytest.raises(planning.Unreachable):
+            planning.optimal_team_steps(env)
+    else:
+        assert planning.optimal_team_steps(env) == plain
+    if name == "corridor":
+        assert best == {**best, "return": 0.0, "steps": 14} and plain is None
+        assert planning.team_return_bound(env) == 400.0 and planning.team_lower_bound(env) == 4
+
+
+# victims drawn among the '?' cells: one regular, one critical that dies at step 4 (the medic, facing NORTH,
+# can triage a top corner in 4 steps, a bottom one in 5: some draws lose the critical victim)
+DRAWN = "?...?\n..A..\n?...?"
+DRAWN_HEADER = "random_victims: 1 1\ncritical_expires: 4"
+
+
+def test_clairvoyant_reference_is_deterministic_and_unbeaten_by_scripted_rollouts():
+    env = part2_env(DRAWN, DRAWN_HEADER, horizon=20, step_penalty=-1.0)
+    ref = planning.clairvoyant_reference(env, n_draws=6, seed=3)
+    assert ref == planning.clairvoyant_reference(env, n_draws=6, seed=3)
+    assert ref["reference"] == "clairvoyant optimum" and all(ref["exact"]) and ref["n_draws"] == 6
+    assert ref["return"] == pytest.approx(np.mean(ref["returns"]))
+    keys = jax.random.split(jax.random.PRNGKey(3), 6)
+    starts = jax.vmap(env.initial_state)(keys)
+
+    def rollout(key, start, probs):
+        def body(carry, key):
+            state, total, done = carry
+            actions = jax.random.choice(key, 4, (env.n_agents,), p=probs)
+            _, state, reward, now_done, _ = env.step(None, state, actions)
+            return (state, total + jnp.where(done, 0.0, reward), done | now_done), None
+
+        carry = (start, jnp.float32(0), jnp.bool_(False))
+        return jax.lax.scan(body, carry, jax.random.split(key, env.horizon))[0][1]
+
+    scripts = {"uniform": jnp.full(4, 0.25), "triage-heavy": jnp.asarray([0.4, 0.15, 0.15, 0.3])}
+    many = jax.jit(jax.vmap(jax.vmap(rollout, in_axes=(0, None, None)), in_axes=(0, 0, None)))
+    for name, probs in scripts.items():
+        got = np.asarray(many(jax.random.split(jax.random.PRNGKey(7), (6, 256)), starts, probs))  # [draw, run]
+        assert np.all(got.max(1) <= np.asarray(ref["returns"]) + 1e-4), name
+        assert got.mean() <= ref["return"]
+    assert len(set(ref["returns"])) > 1  # the draws differ: where the critical victim is savable, and the steps
+    # a draw's optimum is attained: replay the plan of the draw's fixed-victim env on the drawn one
+    for k in range(2):
+        start = jax.tree.map(lambda x: x[k], starts)
+        fixed = planning.fixed_victims(env, start.victim_pos)
+        np.testing.assert_array_equal(fixed.victim_kind, env.victim_kind)
+        best = planning.optimal_team_return(fixed)
+        assert best["return"] == ref["returns"][k] and best["steps"] == ref["draw_steps"][k]
+        assert planning.team_return_bound(fixed) >= best["return"]
+        _, rewards, dones = replay(env, best["plan"], start)
+        assert rewards.sum() == pytest.approx(best["return"]) and dones[-1]
+    assert planning.clairvoyant_reference(env, n_draws=6, seed=4) != ref  # another seed, other draws
+
+
+def test_clairvoyant_reference_on_minimap_is_a_bound():
+    env = envs.make("minimap")
+    ref = planning.clairvoyant_reference(env, n_draws=2, seed=0)
+    assert ref["reference"] == "clairvoyant bound" and ref["exact"] == [False, False]
+    most = 6 * env.triage_reward + 2 * env.critical_reward
+    assert all(0 < r <= most for r in ref["returns"]) and all(0 < s <= env.horizon for s in ref["draw_lower_bounds"])
+    team = planning.team_reference(part2_env(DRAWN, DRAWN_HEADER, horizon=20))
+    assert team["reference"] == "clairvoyant optimum" and isinstance(team["steps"], int) and team["n_draws"] == 32
+
+
+def test_private_names_still_import():
+    from jaxusar.planning import _all_triaged, _search, _single_agent_successors  # noqa: F401
