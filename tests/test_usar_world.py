@@ -220,3 +220,15 @@ def test_view_window_turns_with_the_agent():
         window = np.asarray(env.observe(state))[0, start:start + (2 * k + 1) ** 2 * n].reshape(2 * k + 1, 2 * k + 1, n)
         top = window[0].argmax(-1)  # two cells ahead
         assert (top == WALL).all() == ahead_is_wall, (d, top)
+
+
+def test_draws_are_uniform_over_ordered_subsets():
+    """Every ordered choice of 3 of 5 cells comes up about equally often (60 of them, 1,000 expected each:
+    a sort-free sampler that favoured low indices or repeated one would be off by far more than 15%)."""
+    from jaxusar.envs.usar import draw_without_replacement
+
+    draws = np.asarray(jax.jit(jax.vmap(lambda k: draw_without_replacement(k, 5, 3)))(
+        jax.random.split(jax.random.PRNGKey(0), 60_000)))
+    assert all(len(set(row)) == 3 for row in draws)
+    _, counts = np.unique(draws, axis=0, return_counts=True)
+    assert len(counts) == 60 and counts.min() > 850 and counts.max() < 1150

@@ -119,6 +119,21 @@ def apply_actions(solid, victim_at, agent_pos, agent_dir, triaged, actions):
     return apply_rules(solid, victim_at, agent_pos, agent_dir, triaged, actions)[:4]
 
 
+def draw_without_replacement(key: jax.Array, n: int, k: int) -> jax.Array:
+    """int32[k]: k distinct indices of 0..n-1, uniformly without replacement (every ordered k-subset equally
+    likely): the j-th is uniform among the n - j not yet drawn. k uniforms and k small scans instead of a
+    sort of n random keys (``jax.random.choice(replace=False)``), which dominates a vmapped auto-reset."""
+    u = jax.random.uniform(key, (k,))
+    taken = jnp.zeros((n,), bool)
+    picks = []
+    for j in range(k):
+        rank = jnp.minimum((u[j] * (n - j)).astype(jnp.int32), n - j - 1)  # among the cells left
+        cell = jnp.argmax((jnp.cumsum(~taken) == rank + 1) & ~taken).astype(jnp.int32)
+        taken = taken.at[cell].set(True)
+        picks.append(cell)
+    return jnp.stack(picks)
+
+
 def _check_override(name: str, value: Any, kind: type, low=None, high=None) -> None:
     ok_type = isinstance(value, numbers.Integral) if kind is int else isinstance(value, numbers.Real)
     if isinstance(value, bool) or not ok_type:
@@ -236,7 +251,7 @@ class USAREnv:
         if self.n_drawn:
             if key is None:
                 raise ValueError(f"map {self.layout.name!r} draws victims at reset: pass a PRNG key")
-            cells = jax.random.choice(key, len(self.layout.random_cells), (self.n_drawn,), replace=False)
+            cells = draw_without_replacement(key, len(self.layout.random_cells), self.n_drawn)
             victim_pos = victim_pos.at[self.n_fixed:].set(jnp.asarray(self.layout.random_cells)[cells])
         return EnvState(
             agent_pos=jnp.asarray(self.layout.agent_start, jnp.int32),
