@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import hashlib
+
 from jaxusar import envs
 from jaxusar.cli import main
-from jaxusar.envs import LayoutError, mapgen
+from jaxusar.envs import LayoutError, layout as layout_module, mapgen
 from jaxusar.envs.layout import parse_layout
 
 ROOMS_AND_HALL = """\
@@ -164,6 +166,126 @@ def test_generator_bad_input(kwargs, message):
         mapgen.generate(**kwargs)
 
 
+# generate's text for these arguments before contract part 2's features were added: they must not change
+PART1_TEXTS = {
+    (22, 32, 9, 4, 6, 0): "b3698857580b210e7521f9a78be546352425419f82e27115a0728574e9e9d5c5",
+    (20, 30, 8, 4, 6, 3): "6b7a9418a873cdc182440dbad3b58d3ca9565ab7b71863618d7027b91d2b0d8d",
+    (40, 40, 12, 4, 8, 1): "b7c569bc95a242ad56ee0ca11ba6065f88c2cc7483760edc54b9b47d9913decd",
+    (12, 20, 4, 2, 5, 7): "9b62eb49a2529ff1dd41f47ecb89650c9d74b0bcd1873ddc9578b14090f781ec",
+}
+
+
+@pytest.mark.parametrize("args", list(PART1_TEXTS))
+def test_default_features_reproduce_the_maps_generated_before_them(args):
+    text = mapgen.generate(*args)
+    assert hashlib.sha256(text.encode()).hexdigest() == PART1_TEXTS[args]
+    # zero features spelled out change nothing either (draw_cells only matters with drawn victims)
+    assert mapgen.generate(*args, engineers=0, rubble=0, critical=0, random_regular=0, random_critical=0,
+                           draw_cells=5, settings={}) == text
+
+
+def test_office_is_still_what_the_generator_makes():
+    office = (layout_module.LAYOUT_DIR / "office.txt").read_text().split("---\n", 1)[1]
+    assert mapgen.generate(height=22, width=32, rooms=9, medics=4, victims=6, seed=0).split("---\n", 1)[1] == office
+
+
+PART2 = dict(engineers=2, rubble=3, critical=2, random_regular=3, random_critical=2, draw_cells=2,
+             settings={"critical_expires": 80, "view_radius": 2, "critical_triage_steps": 2, "observation": "view"})
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_generated_part2_maps_are_what_was_asked_and_reproducible(seed):
+    layout, text, regions = mapgen.generated_layout(22, 32, 9, 4, 6, seed, **PART2)
+    assert mapgen.generated_layout(22, 32, 9, 4, 6, seed, **PART2)[1] == text
+    plain, plain_text, plain_regions = mapgen.generated_layout(22, 32, 9, 4, 6, seed)
+    # the features are drawn after the part-1 map: walls, rooms, doorways, medics and victim cells are kept
+    np.testing.assert_array_equal(layout.blocked, plain.blocked)
+    np.testing.assert_array_equal(layout.victim_pos, plain.victim_pos)
+    assert set(map(tuple, plain.agent_start)) <= set(map(tuple, layout.agent_start))
+    assert regions.split("---\n")[1] == plain_regions.split("---\n")[1]  # rubble and '?' segment as floor
+    assert (layout.roles == envs.ENGINEER).sum() == 2 and (layout.roles == envs.MEDIC).sum() == 4
+    assert layout.victim_kind.sum() == 2 and layout.rubble.sum() == 3
+    graph = envs.make(layout).graph
+    for r, c in np.argwhere(layout.rubble):  # in a doorway: walls on two opposite sides, a room and a corridor
+        assert layout.wall[r, c - 1] and layout.wall[r, c + 1]
+        assert {graph.kinds[graph.cell_region[r - 1, c]], graph.kinds[graph.cell_region[r + 1, c]]} == {"room", "hall"}
+    assert all(graph.kinds[graph.cell_region[r, c]] == "hall" for r, c in layout.agent_start)
+    cells = layout.random_cells
+    assert len(cells) >= 5
+    per_room = np.bincount(graph.cell_region[tuple(cells.T)], minlength=graph.n_regions)
+    assert per_room.max() <= 2 and all(graph.kinds[k] == "room" for k in np.flatnonzero(per_room))
+    grid = np.array([list(row) for row in text.split("---\n")[1].splitlines()])
+    for r, c in cells:  # floor all around: no draw can wall a cell in
+        ring = grid[r - 1:r + 2, c - 1:c + 2].copy()
+        ring[1, 1] = "."
+        assert (ring == ".").all()
+    header = text.split("---\n")[0]
+    for line in ("random_victims: 3 2", "critical_triage_steps: 2", "critical_expires: 80", "view_radius: 2",
+                 "observation: view"):
+        assert line + "\n" in header
+    env = envs.make(layout)
+    settings = (env.n_victims, env.n_drawn, env.critical_expires, env.view_radius, env.observation)
+    assert settings == (11, 5, 80, 2, "view")
+    assert env.victim_kind.tolist() == [int(k) for k in layout.victim_kind] + [0, 0, 0, 1, 1]
+
+
+def test_every_draw_of_a_generated_map_leaves_every_victim_triageable():
+    import jax
+
+    layout, _, _ = mapgen.generated_layout(20, 30, 8, 3, 4, 2, engineers=1, rubble=8, random_regular=6,
+                                           random_critical=4, draw_cells=3)
+    env = envs.make(layout)
+    starts = [tuple(cell) for cell in layout.agent_start[layout.roles == envs.MEDIC]]
+    for key in jax.random.split(jax.random.key(0), 16):
+        state = env.initial_state(key)
+        open_ = ~layout.blocked  # every rubble cleared, every victim (fixed and drawn) in the way
+        open_[tuple(np.asarray(state.victim_pos).T)] = False
+        reach = layout_module._geodesic(open_, starts)[0] >= 0
+        near = layout_module._neighbours(reach)
+        assert all(near[r, c] for r, c in np.asarray(state.victim_pos))
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(rubble=1), "rubble=1 needs engineers >= 1"),
+    (dict(engineers=1, rubble=10), "rubble=10: only 9 doorways"),
+    (dict(critical=7), "critical=7: more than the 6 fixed victims"),
+    (dict(random_regular=40, draw_cells=1), "40 victims drawn at reset need as many '\\?' cells"),
+    (dict(random_regular=1, draw_cells=0), "draw_cells=0: must be an integer >= 1"),
+    (dict(engineers=-1), "engineers=-1: must be an integer >= 0"),
+    (dict(settings={"random_victims": "1 0"}), "setting 'random_victims': unknown"),
+    (dict(settings={"observation": "fog"}), "observation='fog': expected one of full, view"),
+    (dict(settings={"critical_expires": 0}), "critical_expires=0: expected an integer >= 1"),
+])
+def test_generator_bad_part2_input(kwargs, message):
+    with pytest.raises(mapgen.GeneratorError, match=message):
+        mapgen.generate(22, 32, 9, 4, 6, 0, **kwargs)
+
+
+def test_victims_may_all_be_drawn_but_a_map_needs_one():
+    layout, _, _ = mapgen.generated_layout(20, 30, 8, 2, 0, 1, random_regular=2)
+    assert len(layout.victim_pos) == 0 and layout.header["random_victims"] == (2, 0)
+    with pytest.raises(mapgen.GeneratorError, match="victims=0"):
+        mapgen.generate(20, 30, 8, 2, 0, 1)
+
+
+def test_rubble_and_draw_cells_segment_as_floor():
+    rows = [list(row) for row in ROOMS_AND_HALL.splitlines()]
+    for r, c in ((1, 2), (2, 8), (3, 12)):
+        rows[r][c] = "?"
+    rows[4][2] = rows[4][7] = "r"  # two doorways under rubble
+    rows[6][7] = "E"
+    text = "random_victims: 2 0\n---\n" + "\n".join("".join(row) for row in rows)
+    plain = "\n".join("".join("." if ch in "?rE" else ch for ch in row) for row in rows)
+    assert mapgen.segmented_regions_text(text, "x") == mapgen.segmented_regions_text(plain, "x")
+    layout = parse_layout(text, mapgen.segmented_regions_text(text, "x"))
+    assert layout.rubble.sum() == 2 and len(layout.random_cells) == 3
+
+
+def test_one_neighbour_function_for_layouts_and_segmentation():
+    assert mapgen._neighbours is layout_module._neighbours
+    assert "near[1:] |=" not in (layout_module.LAYOUT_DIR.parent / "mapgen.py").read_text()
+
+
 def test_maps_generate_cli(tmp_path, capsys):
     out = tmp_path / "maps"
     assert main(["maps", "generate", "--height", "20", "--width", "30", "--rooms", "8", "--medics", "4",
@@ -180,6 +302,45 @@ def test_maps_generate_cli(tmp_path, capsys):
         main(["maps", "generate", "--rooms", "100", "--out", str(out)])
     err = capsys.readouterr().err
     assert e.value.code == 2 and err.count("\n") == 1 and "100 rooms do not fit" in err
+
+
+def test_maps_generate_cli_part2(tmp_path, capsys):
+    out = tmp_path / "maps"
+    assert main(["maps", "generate", "--rooms", "8", "--seed", "3", "--engineers", "1", "--rubble", "2", "--critical",
+                 "1", "--random-regular", "2", "--random-critical", "1", "--draw-cells", "2", "--critical-expires",
+                 "80", "--view-radius", "2", "--observation", "view", "--critical-triage-steps", "2",
+                 "--name", "p2", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert ("4 medics, 1 engineer, 6 victims (1 critical), 3 drawn at reset over" in stdout
+            and "'?' cells, 2 doorways under rubble; generated" in stdout)
+    assert "header: random_victims: 2 1; critical_triage_steps: 2; critical_expires: 80; view_radius: 2; " \
+           "observation: view" in stdout
+    env = envs.make(str(out / "p2.txt"))
+    assert (env.n_agents, env.n_victims, env.critical_expires, env.observation) == (5, 9, 80, "view")
+    assert (out / "p2.png").read_bytes()[:4] == b"\x89PNG"
+    same = mapgen.generate(20, 30, 8, 4, 6, 3, engineers=1, rubble=2, critical=1, random_regular=2, random_critical=1,
+                           draw_cells=2, settings={"critical_triage_steps": 2, "critical_expires": 80,
+                                                   "view_radius": 2, "observation": "view"})
+    assert (out / "p2.txt").read_text().split("---\n")[1] == same.split("---\n")[1]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--rubble", "1"], "rubble=1 needs engineers >= 1 to clear it"),
+    (["--critical", "9"], "critical=9: more than the 6 fixed victims"),
+    (["--observation", "fog"], "observation='fog': expected one of full, view"),
+    (["--random-regular", "99"], "99 victims drawn at reset need as many"),
+    (["--view-radius", "-1"], "view_radius=-1: expected an integer >= 0"),
+])
+def test_maps_generate_cli_bad_part2_input_is_one_line_before_any_work(argv, message, tmp_path, capsys, monkeypatch):
+    def no_env(*args, **kwargs):
+        raise AssertionError("an env was built (and compiled) before the arguments were checked")
+    monkeypatch.setattr(envs, "USAREnv", no_env)
+    out = tmp_path / "maps"
+    with pytest.raises(SystemExit) as e:
+        main(["maps", "generate", "--out", str(out)] + argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and message in err and "Traceback" not in err
+    assert not out.exists()
 
 
 def test_maps_segment_cli(tmp_path, capsys):
@@ -203,6 +364,9 @@ def test_demo_on_a_map_too_big_for_the_exact_search(tmp_path, capsys):
     assert "Optimal team steps: not searched; the exact joint BFS could visit up to" in stdout
     assert "Lower bound on the team's steps (exact single-medic tours" in stdout
     assert "room_0 -- hall_0" in stdout and (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+    # the promised episode is still drawn: a random policy's, said so in one line
+    assert "No plan to show (the exact search is out of reach on this map): playing a uniformly random policy" in stdout
+    assert (out / "episode.png").read_bytes()[:4] == b"\x89PNG" and f"Wrote {out / 'episode.png'}" in stdout
 
 
 def test_training_where_the_exact_optimum_is_out_of_reach_measures_against_the_lower_bound():

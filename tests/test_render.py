@@ -11,8 +11,8 @@ from jaxusar import envs
 from jaxusar.cli import main
 from jaxusar.envs import EAST, NORTH, SOUTH, WEST, make
 from jaxusar.envs.render import (
-    MEDIC, TRIAGED_VICTIM, VICTIM, frame_indices, render_ascii, render_state, rollout_states,
-    save_episode_strip,
+    AGENT_COLOURS, CRITICAL_VICTIM, DEAD_VICTIM, MEDIC, RUBBLE_LINES, TRIAGED_CRITICAL, TRIAGED_VICTIM, VICTIM,
+    ascii_legend, frame_indices, render_ascii, render_state, reset_state, rollout_states, save_episode_strip, save_map,
 )
 from jaxusar.planning import optimal_team_plan, optimal_team_steps
 
@@ -200,3 +200,185 @@ def test_demo_cli_unwritable_out(tmp_path, capsys):
         main(["demo", "--out", str(blocker / "sub")])
     assert exit_info.value.code == 2
     assert "cannot create the output folder" in capsys.readouterr().err
+
+
+# -- contract part 2: rubble, engineers, critical, dead and drawn victims, what the team has seen ------------------
+RUBBLE_RESET_ASCII = """\
+V...#.........^
+....#..........
+....#..........
+...............
+###............
+.......XX...###
+.......XX...r..
+............r..
+...........#.V.
+^....n.....#...
+t=0 triaged=[0 0]"""
+
+
+@pytest.fixture(scope="module")
+def rubble_env():
+    return make("two_rooms_rubble")
+
+
+@pytest.fixture(scope="module")
+def minimap():
+    return make("minimap")
+
+
+def test_render_ascii_rubble_and_engineers(rubble_env):
+    state = rubble_env.initial_state()
+    assert render_ascii(rubble_env, state) == RUBBLE_RESET_ASCII
+    cleared = state.replace(rubble=state.rubble.at[6, 12].set(False))
+    rows = render_ascii(rubble_env, cleared).splitlines()
+    assert rows[6][12] == "," and rows[7][12] == "r"  # cleared (floor now) vs still there
+    for direction, letter in zip((EAST, SOUTH, WEST, NORTH), "eswn"):  # engineers: the compass letter of their facing
+        turned = state.replace(agent_dir=state.agent_dir.at[2].set(direction))
+        assert render_ascii(rubble_env, turned).splitlines()[9][5] == letter
+    legend = ascii_legend(rubble_env)
+    assert "'>v<^' medics" in legend and "'eswn' engineer" in legend and "'r' rubble" in legend
+    assert "',' rubble cleared" in legend and "' ' not seen" not in legend
+    assert ascii_legend(make("two_rooms")) == ("'>v<^' medics facing E S W N, 'V' victim, '+' triaged, '#' wall, "
+                                              "'X' obstacle")
+
+
+def test_render_ascii_victims_where_the_state_draws_them(minimap):
+    assert (minimap.victim_pos == -1).all()  # every victim of minimap is drawn at reset
+    seen = []
+    for k in range(2):
+        state = reset_state(minimap, jax.random.key(k))
+        rows = render_ascii(minimap, state, fog=False).splitlines()
+        for v, (r, c) in enumerate(np.asarray(state.victim_pos)):
+            assert rows[r][c] == "VC"[minimap.victim_kind[v]]
+        assert sum(row.count("V") for row in rows[:-1]) == 6 and sum(row.count("C") for row in rows[:-1]) == 2
+        assert "?" not in "".join(rows)  # the truth: the '?' cells without a victim are floor
+        seen.append(np.asarray(state.victim_pos))
+    assert not np.array_equal(*seen)  # another key, another draw
+
+
+def test_render_ascii_triaged_dead_and_progress(minimap):
+    state = reset_state(minimap)
+    critical = np.flatnonzero(minimap.victim_kind == 1)
+    state = state.replace(triaged=state.triaged.at[0].set(True).at[critical[0]].set(True),
+                          progress=state.progress.at[0].set(1).at[critical[0]].set(2).at[critical[1]].set(1),
+                          dead=state.dead.at[critical[1]].set(True), t=jnp.int32(61))
+    rows = render_ascii(minimap, state, fog=False).splitlines()
+    pos = np.asarray(state.victim_pos)
+    assert rows[pos[0][0]][pos[0][1]] == "+" and rows[pos[critical[0]][0]][pos[critical[0]][1]] == "+"
+    assert rows[pos[critical[1]][0]][pos[critical[1]][1]] == "x"
+    assert rows[-1] == "t=61 triaged=[1 0 0 0 0 0 1 0] dead=[0 0 0 0 0 0 0 1] progress=[1 0 0 0 0 0 2 1]"
+
+
+def test_render_ascii_fog_hides_unseen_victims(minimap):
+    assert minimap.observation == "view"
+    states = [reset_state(minimap, jax.random.key(k)) for k in range(3)]
+    fogged = [render_ascii(minimap, s) for s in states]  # fog is the default on a "view" map
+    assert fogged[0] == fogged[1] == fogged[2]  # nothing in it depends on where the unseen victims are
+    rows = fogged[0].splitlines()
+    for r, c in minimap.layout.random_cells:  # every '?' cell of the layout lies in a room nobody has seen yet
+        assert rows[r][c] == "?"
+    assert rows[0][1] == " " and rows[5][9] == "^" and rows[4][11] == "r" and rows[4][7] == "#"
+    assert "V" not in fogged[0] and "C" not in fogged[0]
+    # once the team has seen a room, its victims show and its empty '?' cells are floor
+    state = states[0]
+    top_west = minimap.graph.cell_region == minimap.graph.index("top_west")
+    rows = render_ascii(minimap, state.replace(seen=state.seen | top_west)).splitlines()
+    truth = render_ascii(minimap, state, fog=False).splitlines()
+    for r, c in np.argwhere(top_west):
+        assert rows[r][c] == truth[r][c]
+    assert render_ascii(make("two_rooms", observation="view"), make("two_rooms").initial_state()) != RESET_ASCII
+
+
+def test_part2_pictures(rubble_env, minimap, tmp_path):
+    path = tmp_path / "x.png"
+    state = rubble_env.initial_state()
+    ax = render_state(rubble_env, state, legend=True)
+    ax.figure.savefig(path)
+    assert has_colour(path, RUBBLE_LINES)
+    assert all(has_colour(path, colour) for colour in AGENT_COLOURS[:3])  # one colour per agent
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert {"medic 0", "medic 1", "engineer 2", "rubble", "rubble cleared"} <= set(labels)
+    render_state(rubble_env, state.replace(rubble=jnp.zeros_like(state.rubble))).figure.savefig(path)
+    assert not has_colour(path, RUBBLE_LINES)  # cleared: pebbles on the floor, no hatched cell
+
+    state = reset_state(minimap)
+    critical = np.flatnonzero(minimap.victim_kind == 1)
+    render_state(minimap, state, fog=False).figure.savefig(path)
+    assert has_colour(path, VICTIM) and has_colour(path, CRITICAL_VICTIM)
+    render_state(minimap, state).figure.savefig(path)  # the team's view at reset: every victim unseen
+    assert not has_colour(path, VICTIM) and not has_colour(path, CRITICAL_VICTIM)
+    done = state.replace(triaged=state.triaged.at[critical[0]].set(True), dead=state.dead.at[critical[1]].set(True))
+    ax = render_state(minimap, done, fog=False, legend=True)
+    ax.figure.savefig(path)
+    assert has_colour(path, TRIAGED_CRITICAL) and has_colour(path, DEAD_VICTIM)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert {"critical victim", "triaged critical", "dead"} <= set(labels)
+    labels = [t.get_text() for t in render_state(minimap, state, legend=True).get_legend().get_texts()]
+    assert {"not seen by the team", "not seen: may hold a victim"} <= set(labels)
+
+
+def test_map_and_strip_of_a_map_with_drawn_victims(minimap, tmp_path):
+    assert_png(save_map(minimap, tmp_path / "map.png"))  # no key needed: one draw, said in the title
+    rng = np.random.default_rng(0)
+    states, rewards = rollout_states(minimap, rng.integers(0, 4, (8, minimap.n_agents)), jax.random.key(1))
+    assert np.array_equal(states[0].victim_pos, reset_state(minimap, jax.random.key(1)).victim_pos)
+    path = save_episode_strip(minimap, states, tmp_path / "episode.png", rewards=rewards)
+    assert_png(path) and has_colour(path, AGENT_COLOURS[2])
+
+
+def write_map(path, layout: str) -> None:
+    from jaxusar.envs.mapgen import segmented_regions_text
+
+    path.write_text(layout)
+    path.with_name(path.stem + ".regions.txt").write_text(segmented_regions_text(layout))
+
+
+def test_demo_cli_with_an_engineer_plays_the_plan(tmp_path, capsys):
+    """A map small enough for a quick exact search, where the medic waits for the engineer to clear rubble."""
+    write_map(tmp_path / "tiny.txt", "A#..V\n.r...\nE#...\n")
+    out = tmp_path / "demo"
+    assert main(["demo", "--map", str(tmp_path / "tiny.txt"), "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "(exact joint BFS): 12" in stdout and "Return 100 in 12 steps (all victims triaged)" in stdout
+    assert "medic 0     engineer 1  reward" in stdout and "CLEAR" in stdout
+    assert "engineer 1 at (2, 0) facing NORTH: an engineer" in stdout
+    assert "'eswn' engineer facing E S W N" in stdout
+    for name in ("map.png", "episode.png"):
+        assert_png(out / name)
+
+
+def test_demo_cli_on_a_map_with_drawn_victims(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--map", "minimap", "--seed", "3", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    drawn = reset_state(make("minimap"), jax.random.key(3))
+    truth = render_ascii(make("minimap"), drawn, fog=False)
+    assert "Reset state (victims drawn with --seed 3)" in stdout and truth in stdout
+    assert "as the team has seen it (observation 'view'" in stdout and render_ascii(make("minimap"), drawn) in stdout
+    assert "the planner below plans for this draw" in stdout
+    assert "No plan to show (the exact search is out of reach on this map): playing a uniformly random policy " \
+           "instead (--seed 3)." in stdout
+    for name in ("map.png", "episode.png"):
+        assert_png(out / name)
+        assert f"Wrote {out / name}" in stdout
+
+
+def test_demo_cli_says_when_a_picture_cannot_be_drawn(tmp_path, capsys, monkeypatch):
+    from jaxusar.envs import render
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+    monkeypatch.setattr(render, "save_episode_strip", broken)
+    out = tmp_path / "demo"
+    write_map(tmp_path / "one.txt", "A.V\n")
+    assert main(["demo", "--map", str(tmp_path / "one.txt"), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert f"jaxusar demo: error: could not draw {out / 'episode.png'}: disk full" in captured.err
+    assert f"Wrote {out / 'map.png'}" in captured.out and not (out / "episode.png").exists()
+
+
+def test_demo_cli_bad_seed(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", "--seed", "-1"])
+    assert exit_info.value.code == 2 and "--seed must be >= 0" in capsys.readouterr().err

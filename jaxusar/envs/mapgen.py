@@ -12,8 +12,14 @@ and writes the result beside it for a person to inspect and edit.
 ``generate(height, width, rooms, medics, victims, seed)``: rows of rooms along 1-wide horizontal
 corridors (a corridor between two rows of rooms, each room with one doorway onto it), joined by a
 vertical corridor down the left edge. Medics start in corridors, victims lie in distinct rooms while
-rooms last. Pure numpy: the same arguments give the same map on every machine, and the map is checked
-solvable (every victim reachable by some medic) by the same parser that loads shipped maps.
+rooms last. Contract part 2's features are keyword arguments (all off by default, and drawn from the
+seed's generator after everything above, so a map without them is the same as before they existed):
+engineers start in corridors, ``rubble`` doorways are blocked by rubble, ``critical`` of the fixed
+victims are critical, and ``random_regular`` + ``random_critical`` victims are drawn at reset over up to
+``draw_cells`` '?' cells per room (the header line ``random_victims``); ``settings`` adds header lines
+(``triage_steps``, ``critical_expires``, ``view_radius``, ...). Pure numpy: the same arguments give the
+same map on every machine, and the map is checked solvable (every victim and '?' cell reachable by some
+medic, past rubble the engineers can clear) by the same parser that loads shipped maps.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import string
 
 import numpy as np
 
-from jaxusar.envs.layout import Layout, LayoutError, _geodesic, parse_layout
+from jaxusar.envs.layout import HEADER_KEYS, Layout, LayoutError, _geodesic, _neighbours, header_value, parse_layout
 
 LETTERS = string.ascii_uppercase + string.ascii_lowercase + string.digits
 WIDE = 3         # a room holds a WIDE x WIDE block of open cells; a narrower area is hall
@@ -66,12 +72,7 @@ def _wide(open_: np.ndarray) -> np.ndarray:
 
 def _touching(labels: np.ndarray, mask: np.ndarray) -> set[int]:
     """Labels of the cells 4-adjacent to ``mask``."""
-    near = np.zeros_like(mask)
-    near[1:] |= mask[:-1]
-    near[:-1] |= mask[1:]
-    near[:, 1:] |= mask[:, :-1]
-    near[:, :-1] |= mask[:, 1:]
-    return set(int(x) for x in np.unique(labels[near & ~mask]) if x >= 0)
+    return set(int(x) for x in np.unique(labels[_neighbours(mask) & ~mask]) if x >= 0)
 
 
 def _pieces(cells: np.ndarray, radius: int) -> list[np.ndarray]:
@@ -171,14 +172,112 @@ def room_capacity(height: int, width: int) -> int:
     return _per_row(width) * rows
 
 
-def generate(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0) -> str:
+DRAW_CELLS = 3  # '?' cells per room (at most) where victims are drawn at reset, by default
+FEATURES = {"engineers": 0, "rubble": 0, "critical": 0, "random_regular": 0, "random_critical": 0,
+            "draw_cells": DRAW_CELLS}  # generate's part-2 arguments and their defaults (all features off)
+SETTINGS = tuple(k for k in HEADER_KEYS if k != "random_victims")  # header lines ``settings`` may add
+
+
+def _count(name: str, value, least: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        raise GeneratorError(f"{name}={value!r}: must be an integer >= {least}")
+    return int(value)
+
+
+def _check_features(rooms: int, victims: int, engineers: int, rubble: int, critical: int, random_regular: int,
+                    random_critical: int, draw_cells: int, settings: dict | None) -> list[str]:
+    """Check the part-2 arguments against each other; returns the header's ``key: value`` lines."""
+    for name, value, least in (("engineers", engineers, 0), ("rubble", rubble, 0), ("critical", critical, 0),
+                               ("random_regular", random_regular, 0), ("random_critical", random_critical, 0),
+                               ("draw_cells", draw_cells, 1)):
+        _count(name, value, least)
+    drawn = random_regular + random_critical
+    if rubble and not engineers:
+        raise GeneratorError(f"rubble={rubble} needs engineers >= 1 to clear it (no medic can)")
+    if rubble > rooms:
+        raise GeneratorError(f"rubble={rubble}: only {rooms} doorways (one per room) to put rubble in")
+    if critical > victims:
+        raise GeneratorError(f"critical={critical}: more than the {victims} fixed victims")
+    lines = [f"random_victims: {random_regular} {random_critical}"] if drawn else []
+    for key, value in (settings or {}).items():
+        if key not in SETTINGS:
+            raise GeneratorError(f"setting {key!r}: unknown; known: {', '.join(SETTINGS)} (random_victims comes from "
+                                 "random_regular and random_critical)")
+        try:
+            value = header_value(key, value, "map setting")
+        except LayoutError as err:
+            raise GeneratorError(str(err)) from None
+        if value is not None:
+            lines.append(f"{key}: {value}")
+    return sorted(lines, key=lambda line: list(HEADER_KEYS).index(line.split(":")[0]))
+
+
+def _clear_around(grid: np.ndarray, room: tuple[int, int, int, int], cell: tuple[int, int]) -> bool:
+    """Whether ``cell`` and its 8 neighbours are floor inside ``room`` (top, left, height, width): a victim
+    drawn there never walls anything in, whichever other such cells hold one."""
+    top, left, h, w = room
+    r, c = cell
+    return top < r < top + h - 1 and left < c < left + w - 1 and bool(np.all(grid[r - 1:r + 2, c - 1:c + 2] == "."))
+
+
+def _add_features(grid: np.ndarray, rng: np.random.Generator, hall, doors, rooms, engineers: int, rubble: int,
+                  critical: int, drawn: int, draw_cells: int) -> None:
+    """Contract part 2's features, drawn from ``rng`` after the part-1 map (in place): engineers in corridor
+    cells, rubble in doorways, critical fixed victims, and '?' cells in rooms."""
+    if engineers:
+        free = [cell for cell in hall if grid[cell] == "."]
+        if engineers > len(free):
+            raise GeneratorError(f"{engineers} engineers do not fit in the {len(free)} free corridor cells of this map")
+        for k in sorted(rng.choice(len(free), engineers, replace=False)):
+            grid[free[k]] = "E"
+    if rubble:
+        for k in sorted(rng.choice(len(doors), rubble, replace=False)):
+            grid[doors[k]] = "r"
+    if critical:
+        fixed = [tuple(int(x) for x in cell) for cell in np.argwhere(grid == "V")]
+        for k in sorted(rng.choice(len(fixed), critical, replace=False)):
+            grid[fixed[k]] = "C"
+    if drawn:
+        cells = 0
+        for room in rooms:
+            top, left, h, w = room
+            candidates = [(r, c) for r in range(top, top + h) for c in range(left, left + w)
+                          if _clear_around(grid, room, (r, c))]
+            placed = 0
+            for k in rng.permutation(len(candidates)):
+                if placed == draw_cells:
+                    break
+                if _clear_around(grid, room, candidates[k]):  # still clear of the '?' cells placed so far
+                    grid[candidates[k]] = "?"
+                    placed += 1
+            cells += placed
+        if cells < drawn:
+            raise GeneratorError(f"{drawn} victims drawn at reset need as many '?' cells; the rooms of this map hold "
+                                 f"{cells} (at most {draw_cells} per room, each with floor on all 8 sides); ask for "
+                                 "more draw_cells, bigger rooms or fewer drawn victims")
+
+
+def generate(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0, *,
+             engineers: int = 0, rubble: int = 0, critical: int = 0, random_regular: int = 0, random_critical: int = 0,
+             draw_cells: int = DRAW_CELLS, settings: dict | None = None) -> str:
     """A rooms-and-corridors layout (the ``.txt`` text, header included), the same for the same arguments.
 
-    Not checked here; ``generated_layout`` parses it (every victim reachable) and segments its regions."""
+    Part 2 (DESIGN.md): ``engineers`` start in corridors; ``rubble`` of the rooms' doorways hold rubble
+    (needs an engineer); ``critical`` of the ``victims`` are critical ('C'); ``random_regular`` and
+    ``random_critical`` victims are drawn at reset over up to ``draw_cells`` '?' cells per room (each with
+    floor on all 8 sides, so no draw walls anything in); ``settings`` {key: value} adds header lines
+    (``SETTINGS``: triage_steps, critical_triage_steps, critical_reward, critical_expires, view_radius,
+    observation). Not checked here; ``generated_layout`` parses it (every victim reachable) and segments
+    its regions."""
     for name, value, least in (("height", height, 2 * WIDE), ("width", width, WIDE + 2), ("rooms", rooms, 1),
-                               ("medics", medics, 1), ("victims", victims, 1), ("seed", seed, 0)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-            raise GeneratorError(f"{name}={value!r}: must be an integer >= {least}")
+                               ("medics", medics, 1), ("victims", victims, 0), ("seed", seed, 0)):
+        _count(name, value, least)
+    drawn = _count("random_regular", random_regular, 0) + _count("random_critical", random_critical, 0)
+    if victims < 1 and not drawn:
+        raise GeneratorError(f"victims={victims!r}: a map needs a victim (victims >= 1, or some drawn at reset: "
+                             "random_regular, random_critical)")
+    header_lines = _check_features(rooms, victims, engineers, rubble, critical, random_regular, random_critical,
+                                   draw_cells, settings)
     capacity = room_capacity(height, width)
     if rooms > capacity:
         raise GeneratorError(f"{rooms} rooms do not fit in a {height}x{width} map (at most {capacity} rooms of "
@@ -191,7 +290,7 @@ def generate(height: int, width: int, rooms: int, medics: int, victims: int, see
     heights = _split(height - _overhead(n_rows), n_rows, WIDE, rng)
     grid = np.full((height, width), "#", dtype="<U1")
     grid[:, 0] = "."  # the vertical corridor down the left edge
-    corridors, room_cells, inside_door = [], [], set()
+    corridors, room_cells, inside_door, doors, room_boxes = [], [], set(), [], []
     r = 0
     for i in range(n_rows):
         if i % 2 == 0:
@@ -210,8 +309,10 @@ def generate(height: int, width: int, rooms: int, medics: int, victims: int, see
             grid[top:top + heights[i], c:c + wd] = "."
             door_col = int(rng.integers(c, c + wd))
             grid[door_row, door_col] = "."
+            doors.append((door_row, door_col))
             inside_door.add((door_row - 1 if i % 2 == 0 else door_row + 1, door_col))
             room_cells.append([(rr, cc) for rr in range(top, top + heights[i]) for cc in range(c, c + wd)])
+            room_boxes.append((top, c, heights[i], wd))
             c += wd + 1
     grid[corridors[-1] + 1:, 0] = "#"  # the vertical corridor ends at the last corridor
     hall = [(rr, 0) for rr in range(corridors[-1] + 1)] + [(cr, cc) for cr in corridors for cc in range(1, width)]
@@ -225,15 +326,22 @@ def generate(height: int, width: int, rooms: int, medics: int, victims: int, see
         if not free:
             raise GeneratorError(f"{victims} victims do not fit in the rooms of this map")
         grid[free[int(rng.integers(len(free)))]] = "V"
+    _add_features(grid, rng, hall, doors, room_boxes, engineers, rubble, critical, drawn, draw_cells)
+    features = dict(engineers=engineers, rubble=rubble, critical=critical, random_regular=random_regular,
+                    random_critical=random_critical, draw_cells=draw_cells)
+    given = "".join(f", {k}={v}" for k, v in features.items() if v != FEATURES[k] and (k != "draw_cells" or drawn))
+    given += f", settings={dict(settings)!r}" if settings else ""
     header = (f"; generated by jaxusar.envs.mapgen.generate(height={height}, width={width}, rooms={rooms}, "
-              f"medics={medics}, victims={victims}, seed={seed})\n---\n")
+              f"medics={medics}, victims={victims}, seed={seed}{given})\n"
+              + "".join(f"{line}\n" for line in header_lines) + "---\n")
     return header + "\n".join("".join(row) for row in grid) + "\n"
 
 
 def generated_layout(height: int, width: int, rooms: int, medics: int, victims: int, seed: int = 0,
-                     name: str = "generated", hall_radius: int = HALL_RADIUS) -> tuple[Layout, str, str]:
-    """``generate`` parsed and checked: (Layout, layout text, region grid text)."""
-    text = generate(height, width, rooms, medics, victims, seed)
+                     name: str = "generated", hall_radius: int = HALL_RADIUS, **features) -> tuple[Layout, str, str]:
+    """``generate`` parsed and checked: (Layout, layout text, region grid text). ``features``: ``generate``'s
+    keyword arguments (engineers, rubble, critical, random_regular, random_critical, draw_cells, settings)."""
+    text = generate(height, width, rooms, medics, victims, seed, **features)
     regions = segmented_regions_text(text, name, hall_radius)
     try:
         return parse_layout(text, regions, name=name), text, regions
