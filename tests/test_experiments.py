@@ -56,6 +56,8 @@ def test_progress_gives_no_time_to_go_before_the_slowest_trial_has_moved(capsys)
     (["train", "iql", "--trials", "0"], "--trials"),
     (["train", "sarsa"], "unknown algorithm"),
     (["train", "iql", "--set", "env.map=atlantis"], "unknown map"),
+    (["train", "iql", "--map", "nowhere/my_map.txt"], "the map file 'nowhere/my_map.txt' does not exist"),
+    (["train", "iql", "--set", "env.map=my_map.txt"], "the map file 'my_map.txt' does not exist"),
     (["train", "iql", "--options", "2,4"], "--options"),
     (["train", "doc", "--options", "2,x"], "--options"),
     (["train", "iql", "--config", "/nonexistent.yaml"], "does not exist"),
@@ -64,10 +66,85 @@ def test_progress_gives_no_time_to_go_before_the_slowest_trial_has_moved(capsys)
 ])
 def test_train_bad_input_is_one_line_before_compiling(argv, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
-        main(argv + ["--out", str(tmp_path / "x")])
+        main(argv + ["--out", str(tmp_path / "x" / "y")])
     err = capsys.readouterr().err
     assert e.value.code == 2 and message in err and "Traceback" not in err
-    assert not (tmp_path / "x" / "metrics.json").exists()
+    assert not (tmp_path / "x").exists()  # a refused run leaves no empty folder behind
+
+
+def test_the_default_folder_names_the_algorithm_and_the_map(tmp_path, monkeypatch, capsys):
+    """Runs of one algorithm on two maps do not collide; a finished run in the way suggests --out."""
+    from jaxusar import config
+    from jaxusar.experiments.train import default_out
+
+    assert default_out(config.load()) == Path("runs/iql-two_rooms")
+    assert default_out(config.load(sets=["env.map=office", "algo=doc"])) == Path("runs/doc-office")
+    (tmp_path / "my_ward.txt").write_text(OFFICE)
+    assert default_out(config.load(sets=[f"env.map={tmp_path / 'my_ward.txt'}"])) == Path("runs/iql-my_ward")
+    monkeypatch.chdir(tmp_path)
+    Path("runs/iql-two_rooms").mkdir(parents=True)
+    Path("runs/iql-two_rooms/metrics.json").write_text("{}")
+    with pytest.raises(SystemExit) as e:
+        main(["train", "iql"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "runs/iql-two_rooms/metrics.json exists" in err
+    assert "--out DIR" in err and "--force" in err
+    assert sorted(p.name for p in Path("runs").iterdir()) == ["iql-two_rooms"]
+
+
+def test_a_refused_run_removes_only_the_folders_it_made(tmp_path):
+    from jaxusar.experiments.train import removed_if_refused
+
+    (tmp_path / "mine" / "kept").mkdir(parents=True)
+    with pytest.raises(KeyboardInterrupt):
+        with removed_if_refused(tmp_path / "mine"):
+            for d in ("checkpoints", "iql", "doc/K2"):
+                (tmp_path / "mine" / d).mkdir(parents=True)
+            (tmp_path / "mine" / "iql" / "curves.csv").write_text("")
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["iql", "kept"]  # the user's, and one written to
+    with pytest.raises(ValueError):
+        with removed_if_refused(tmp_path / "new" / "run"):
+            (tmp_path / "new" / "run" / "checkpoints").mkdir(parents=True)
+            raise ValueError
+    assert not (tmp_path / "new").exists()
+
+
+# Ctrl-C at a known moment: the child sends itself SIGINT right after its first checkpoint is on disk.
+CTRL_C_AFTER_THE_FIRST_CHECKPOINT = """
+import os, signal, sys
+from jaxusar.cli import main
+from jaxusar.core import checkpoint
+
+save = checkpoint.save
+
+def save_then_ctrl_c(path, tree, meta):
+    save(path, tree, meta)
+    checkpoint.save = save
+    os.kill(os.getpid(), signal.SIGINT)
+
+checkpoint.save = save_then_ctrl_c
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_ctrl_c_is_one_line_and_the_same_command_resumes_saying_from_where(tmp_path, capsys):
+    import subprocess
+
+    out = tmp_path / "run"
+    ckpt = out / "checkpoints" / "iql.ckpt"
+    argv = ["train", "iql", "--trials", "2", "--out", str(out), "--checkpoint-every", "0", *IQL_TINY,
+            "--set", "train.chunk_steps=500"]
+    done = subprocess.run([sys.executable, "-c", CTRL_C_AFTER_THE_FIRST_CHECKPOINT, *argv], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 130 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.splitlines()[-1] == (f"jaxusar train: interrupted; the last checkpoint is {ckpt} (iql after "
+                                            "chunk 1); the same command resumes from there")
+    assert ckpt.exists() and not (out / "metrics.json").exists()
+    assert main(argv) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith(f"[iql] resumed from {ckpt}: continuing after chunk 1 ("), first
+    assert json.loads((out / "metrics.json").read_text())["seconds"]["resumed_from_chunk"] == 1
 
 
 # A second map (the README's example): no room called "bottom", so the two-rooms map's settings must not
@@ -118,6 +195,11 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(nav
                 + sets("train.episodes=20", "train.test_every=10", "train.chunk_steps=2000",
                        "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.chunk_steps=4",
                        f"hierarchical.navigation={navigation}")) == 0
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert "chunk" not in printed  # --quiet: no progress lines, but the results
+    assert "[hierarchical] budget per trial:" in printed and "[hierarchical] end to end" in printed
+    assert f"wrote {out}" in printed
     m = json.loads((out / "metrics.json").read_text())
     assert m["config"]["algo"] == "hierarchical" and len(m["episodes_to_optimal"]) == 1
     assert m["config"]["env"]["map"].endswith("office.txt") and m["config"]["hierarchical"]["task_gamma"] == {}
@@ -128,7 +210,62 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(nav
         assert m["tasks"][0] == "NAVIGATE-TO-ANY-ROOM" and len(m["tasks"]) == 3
         assert m["subpolicy_initiation_states"]["NAVIGATE-TO-ANY-ROOM"] == 4 * (38 + 38)
     assert 0 <= m["subpolicy_coverage"][m["tasks"][0]][0] <= 1
-    assert "Traceback" not in capsys.readouterr().err
+    assert "Traceback" not in captured.err
+    written = {p.name for p in out.iterdir()}  # the figures `jaxusar train --help` names
+    assert {"fig4_subpolicies.png", "coordinator.png", "team_episode.png"} <= written and "curves.png" not in written
+    assert {f"fig4_{t.replace(':', '_').lower()}.png" for t in m["tasks"]} <= written
+
+
+def test_train_help_names_the_figures_each_algorithm_writes(capsys):
+    from jaxusar.experiments import doc, hierarchical
+    from jaxusar.experiments.train import FlatExperiment
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = capsys.readouterr().out
+    for algo, cls in (("iql", FlatExperiment), ("doc", doc.Experiment), ("hierarchical", hierarchical.Experiment)):
+        assert f"  {algo:<13} {', '.join(cls.FIGURES)}" in text
+    assert "DIR/curves.png" not in text
+    with pytest.raises(SystemExit):
+        main(["maps", "--help"])
+    assert "--out" not in [line for line in capsys.readouterr().out.splitlines() if "segment" in line][0]
+
+
+def test_the_hierarchical_summary_says_what_the_budget_is_and_where_each_trial_stands():
+    """The console's last lines after `train hierarchical` (issue: 'optimal in 0 of 2' end to end beside 'optimal
+    in 1 of 2' for the coordinator read as a contradiction): the budget's parts, the sub-policies exact from
+    every state, the best team episode against the optimum, then the two counts."""
+    from jaxusar.experiments.hierarchical import summary_lines
+
+    tasks = [f"task{k}" for k in range(9)]
+    per_task = {t: [20, 20] for t in tasks}
+    per_task["task3"] = [20, None]  # trial 1: one sub-policy not exact from every state
+    metrics = {
+        "tasks": tasks, "trials": 2, "optimal_team_steps": 24, "reference": "optimum",
+        "subpolicy_episodes_to_optimal": {"per_task": per_task},
+        "subpolicy_coverage": {t: [1.0, 1.0 if t != "task3" else 0.972] for t in tasks},
+        "subpolicy_initiation_states": {t: 428 for t in tasks},
+        "best_team_test_steps": [24, 26], "optimality_gap": [1.0, 26 / 24],
+        "coordinator_episodes_to_optimal": [70, None], "episodes_to_optimal": [250, None],
+        "episodes_to_optimal_single_start": [None, None],
+    }
+    lines = summary_lines(metrics, per_subpolicy=30, coordinator=100)
+    assert lines[0] == "budget per trial: 9 sub-policies x 30 episodes + 100 coordinator episodes = 370 episodes"
+    assert lines[1] == ("sub-policies greedy-optimal from every state they may start in: trial 0: 9/9, trial 1: 8/9; "
+                        "the least: task3 in trial 1, optimal from 97.2% of its 428 states")
+    assert lines[2].startswith("best greedy team episode (the coordinator over its trial's sub-policies): trial 0: "
+                               "24 steps, trial 1: 26 steps; the optimum is 24 steps (exact joint search); 1 of 2")
+    assert "optimal in 1 of 2 trials, after 70 episodes" in lines[3]
+    assert lines[4].endswith("optimal in 1 of 2 trials, after 250 episodes; never within 370 in the other 1; "
+                             "median > 370")
+    many = {**metrics, "trials": 10, "best_team_test_steps": [24] * 9 + [300], "optimality_gap": [1.0] * 9 + [None],
+            "subpolicy_episodes_to_optimal": {"per_task": {t: v * 5 for t, v in per_task.items()}},
+            "subpolicy_coverage": {t: v * 5 for t, v in metrics["subpolicy_coverage"].items()},
+            "coordinator_episodes_to_optimal": [70] * 10, "episodes_to_optimal": [250] * 10,
+            "episodes_to_optimal_single_start": [None] * 10, "reference": "lower bound"}
+    lines = summary_lines(many, per_subpolicy=30, coordinator=100)
+    assert "all 9 in 5 of 10 trials, fewest 8/9" in lines[1]
+    assert "every victim triaged in 9 of 10 trials, in 24 to 24 steps" in lines[2] and "lower bound is 24" in lines[2]
 
 
 @pytest.mark.parametrize("name", ["options", "subpolicies", "coordinator", "option_critic"])
@@ -198,7 +335,7 @@ def make_learner(env, cfg):
 
 
 def test_a_forks_learner_file_trains_from_the_cli(tmp_path):
-    """README 'Adding a learner': one file in a checkout's jaxusar/algos (an editable install imports the
+    """docs/extending.md, 'Adding a learner': one file in a checkout's jaxusar/algos (an editable install imports the
     checkout, as PYTHONPATH does here) is listed by `jaxusar train --help` and trains."""
     import os
     import shutil
@@ -306,3 +443,49 @@ def test_figures_show_a_stopped_trials_kept_test_not_its_last_one():
     curve = np.array([[300.0, 18.0, 300.0, nan, nan], [300.0, 250.0, 40.0, 30.0, 18.0]])
     np.testing.assert_array_equal(kept(curve, np.array([18.0, 18.0])),
                                   [[300, 18, 300, 18, 18], [300, 250, 40, 30, 18]])
+
+
+def test_figures_stay_readable_on_big_maps(tmp_path):
+    """Issue 39's figures: the sub-policy figure pages past 8 tasks (office: 23), several series drop the
+    faint min-max bands that blurred together, the reward axis does not run down to the coordinator's
+    invalid-option penalties, and a lower bound is labelled as one, not as 'optimal'."""
+    import matplotlib.pyplot as plt
+
+    from jaxusar.experiments import plots
+    from jaxusar.experiments.hierarchical import PAGE_TASKS, subpolicy_pages
+
+    rng = np.random.default_rng(0)
+    n = PAGE_TASKS + 1
+    sub = {"train_length": rng.uniform(10, 300, (n, 2, 40)), "test_length": rng.uniform(10, 300, (n, 2, 4)),
+           "test_coverage": rng.uniform(0, 1, (n, 2, 4)), "best_length": np.full((n, 2), 12.0),
+           "best_coverage": np.ones((n, 2)), "test_episode": np.arange(10, 50, 10)}
+    pages = subpolicy_pages(sub, [f"task{k}" for k in range(n)], tmp_path, 300, np.full(n, -1))
+    assert [p.name for p in pages] == ["fig4_subpolicies.png", "fig4_subpolicies_2.png"]
+
+    def result(low):
+        returns = rng.uniform(0, 200, (2, 40))
+        returns[:, :5] = low  # the coordinator's first episodes: invalid options, -100 each
+        return {"train_length": rng.uniform(10, 300, (2, 40)), "train_return": returns,
+                "test_episode": np.arange(10, 50, 10), "test_length": rng.uniform(10, 300, (2, 4)),
+                "test_return": rng.uniform(0, 200, (2, 4)), "best_length": np.full(2, 42.0),
+                "best_return": np.full(2, 200.0)}
+
+    drawn = {}
+    close = plt.close
+    try:
+        plt.close = lambda fig: drawn.setdefault("fig", fig)  # keep the figure to look at its axes
+        plots.training_figure([("2 options", result(0.0)), ("4 options", result(0.0))], tmp_path / "k.png", "K",
+                              horizon=300, optimal_steps=42, reward_range=(0.0, 200.0), reference="lower bound")
+        fig = drawn.pop("fig")
+        assert len(fig.axes[0].collections) == 2  # one interquartile band per series, no min-max bands
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert "lower bound (42 steps)" in labels and "2 options" in labels and not fig.axes[0].get_legend()
+        plots.training_figure(result(-30_000.0), tmp_path / "c.png", "coordinator", horizon=300, optimal_steps=18,
+                              smooth_window=1, reward_range=(0.0, 200.0))
+        fig = drawn.pop("fig")
+        assert fig.axes[1].get_ylim()[0] == pytest.approx(-10.0)  # not -30,000
+        assert any("cut off below" in t.get_text() for t in fig.axes[1].texts)
+        assert "optimal (18 steps)" in [t.get_text() for t in fig.legends[0].get_texts()]
+    finally:
+        plt.close = close
+        plt.close("all")

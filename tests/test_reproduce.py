@@ -157,6 +157,35 @@ def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
         runner.run([[stage]])
 
 
+def test_a_changed_budget_is_refused_as_another_configuration_before_the_shapes_are_read(tmp_path):
+    """Resuming after changing train.episodes or --trials: the arrays differ in shape too, but the message
+    is the one a changed dqn.lr gets (configuration, --force), not 'array 69 is float32[18, 61]'."""
+    from jaxusar import config
+    from jaxusar.experiments.runner import Runner, Stage
+    from jaxusar.experiments.train import build, run_fingerprint
+
+    sets = ["train.test_every=10", "env.horizon=40", "train.chunk_steps=400"]
+    small, big = (config.load(sets=sets + [f"train.episodes={n}"]) for n in (10, 20))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    old = Stage("iql", build(small)[3], keys)
+    meta = {"stage": "iql", "lanes": 2, "chunk": 1, "run_seconds": 1.0, "finished": False}
+    runner = Runner(tmp_path, fingerprint=run_fingerprint(big, 2))
+    checkpoint.save(runner.path(old), old.trainer.init(keys), {**meta, "fingerprint": run_fingerprint(small, 2)})
+    new = Stage("iql", build(big)[3], keys)
+    with pytest.raises(CheckpointError, match=r"another configuration.*--trials changed\); pass --force") as e:
+        runner.run([[new]])
+    assert "array" not in str(e.value)
+    assert run_fingerprint(big, 2) != run_fingerprint(big, 3)  # --trials is part of what must match
+    # the same fingerprint but another number of lanes (a checkpoint without trials in its fingerprint)
+    checkpoint.save(runner.path(old), old.trainer.init(keys), {**meta, "lanes": 3, "fingerprint": runner.fingerprint})
+    with pytest.raises(CheckpointError, match="3 lanes, this one has 2.*--force"):
+        runner.run([[new]])
+    # the same fingerprint and lanes, other shapes (the map file was edited): still says what to do
+    checkpoint.save(runner.path(old), old.trainer.init(keys), {**meta, "fingerprint": runner.fingerprint})
+    with pytest.raises(CheckpointError, match=r"array \d+ is .*does not fit this run's state.*--force"):
+        runner.run([[new]])
+
+
 def test_a_checkpoint_is_due_once_the_chunk_has_run_not_when_it_was_dispatched(tmp_path, monkeypatch):
     """JAX dispatches a chunk asynchronously, so its time passes where its results are first read (here: the
     fake clock jumps 100 s then). A checkpoint every 60 s must then follow every chunk. (Reading the clock
@@ -329,7 +358,8 @@ def test_trials_split_over_two_processes_equal_one_process(reference_unfocused, 
     (["--trials", "3", "--distributed", "--num-processes", "2", "--process-id", "0",
       "--coordinator", "127.0.0.1:1"], "cannot be split evenly over 2 processes"),
     (["--process-id", "0"], "--distributed"),
-    (["--map", "nowhere"], "nowhere"),
+    (["--map", "nowhere"], "unknown map 'nowhere'"),
+    (["--map", "maps/nowhere.txt"], "the map file 'maps/nowhere.txt' does not exist"),
     (["--map", "office", "--set", "hierarchical.hierarchical.coordinator.kind=flat"], "50,625 joint options"),
     (["--map", "four_rooms", "--set", "iql.env.map=two_rooms"], "same map"),
 ])
@@ -338,7 +368,7 @@ def test_reproduce_bad_input_is_one_line_before_compiling(argv, message, tmp_pat
         main(["reproduce", "--out", str(tmp_path / "x")] + argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and message in err and "Traceback" not in err
-    assert not (tmp_path / "x" / "results.json").exists()
+    assert not (tmp_path / "x").exists()  # a refused run leaves no empty folder behind
 
 
 def test_table2_marks_what_never_reached_optimal():

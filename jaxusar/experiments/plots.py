@@ -31,8 +31,9 @@ def smooth(x: np.ndarray, window: int) -> np.ndarray:
     return out / n
 
 
-def band(ax, x, y, label=None, color=None):
-    """Mean over trials (axis 0) with a band from the 25th to the 75th percentile and min-max faint."""
+def band(ax, x, y, label=None, color=None, spread: bool = True):
+    """Mean over trials (axis 0) with a band from the 25th to the 75th percentile and, with ``spread``,
+    min-max faint (left out where several series share the axes: their faint bands blur together)."""
     y = np.asarray(y, float)
     with warnings.catch_warnings():  # nan: episodes a stopped trial did not run (train.stop_at_optimal)
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -40,47 +41,63 @@ def band(ax, x, y, label=None, color=None):
         (line,) = ax.plot(x, mean, label=label, color=color, lw=1.5)
         lo, hi = np.nanpercentile(y, [25, 75], axis=0)
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.25, lw=0)
-        ax.fill_between(x, np.nanmin(y, 0), np.nanmax(y, 0), color=line.get_color(), alpha=0.08, lw=0)
+        if spread:
+            ax.fill_between(x, np.nanmin(y, 0), np.nanmax(y, 0), color=line.get_color(), alpha=0.08, lw=0)
     return line
 
 
-def band_key(fig, n_trials: int, color: str = "tab:blue", extra: dict | None = None) -> None:
-    """A legend under the figure saying what ``band``'s line and two shades are (and ``extra`` label: artist)."""
+def band_key(fig, n_trials: int, color: str = "tab:blue", extra: dict | None = None, spread: bool = True,
+             ncol: int | None = None) -> None:
+    """A legend under the figure saying what ``band``'s line and shades are (and ``extra`` label: artist),
+    in rows of ``ncol`` entries (default: one row)."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     entries = {f"mean of {n_trials} trials": Line2D([], [], color=color, lw=1.5),
-               "25th-75th percentile of trials": Patch(color=color, alpha=0.35, lw=0),
-               "lowest to highest trial": Patch(color=color, alpha=0.1, lw=0), **(extra or {})}
-    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=len(entries), frameon=False,
+               "25th-75th percentile of trials": Patch(color=color, alpha=0.35, lw=0)}
+    if spread:
+        entries["lowest to highest trial"] = Patch(color=color, alpha=0.1, lw=0)
+    entries.update(extra or {})
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=ncol or len(entries), frameon=False,
                fontsize=9)
 
 
 def reward_range(env) -> tuple[float, float]:
     """(the team return of an episode that triages nothing, of one that triages every victim at once)."""
-    return env.horizon * env.step_penalty, env.n_victims * env.triage_reward
+    critical = int(np.sum(env.victim_kind == 1))  # envs.CRITICAL: critical_reward each
+    best = (env.n_victims - critical) * env.triage_reward + critical * env.critical_reward
+    return env.horizon * env.step_penalty, best
 
 
 def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, title: str,
                     horizon: int | None = None, optimal_steps: int | None = None, smooth_window: int = 20,
-                    reward_range: tuple[float, float] | None = None):
+                    reward_range: tuple[float, float] | None = None, reference: str = "optimum"):
     """2x2 figure: train steps, train reward, test steps, test reward vs training episodes.
 
-    ``results`` is one trainer result dict, or a list of (label, results) drawn on the same axes.
-    ``reward_range``: (the return of an episode that triages nothing, the best possible return); the
-    reward axes span at least it, and a figure whose greedy tests never beat the first says so.
+    ``results`` is one trainer result dict, or a list of (label, results) drawn on the same axes (each
+    with its mean and interquartile band, keyed under the figure). ``reward_range``: (the return of an
+    episode that triages nothing, the best possible return); the reward axes span it and stop a little
+    below it (returns lower still, the coordinator's invalid-option penalties, are cut off, and the axis
+    says so), and a figure whose greedy tests never beat the first says so. ``reference``: what
+    ``optimal_steps`` is, "optimum" or "lower bound" (``planning.team_reference``).
     """
     from matplotlib.lines import Line2D
 
     series = results if isinstance(results, list) else [(None, results)]
+    spread = len(series) == 1
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.4), sharex=True)
+    top, bottom = [-np.inf, -np.inf], [np.inf, np.inf]  # the highest and lowest reward drawn, per row
     for label, r in series:
         n = r["train_length"].shape[1]
         ep = np.arange(1, n + 1)
-        band(axes[0, 0], ep, smooth(r["train_length"], smooth_window), label)
-        band(axes[0, 1], ep, smooth(r["train_return"], smooth_window), label)
-        band(axes[1, 0], r["test_episode"], kept(r["test_length"], r["best_length"]), label)
-        band(axes[1, 1], r["test_episode"], kept(r["test_return"], r["best_return"]), label)
+        rewards = smooth(r["train_return"], smooth_window), kept(r["test_return"], r["best_return"])
+        band(axes[0, 0], ep, smooth(r["train_length"], smooth_window), label, spread=spread)
+        band(axes[0, 1], ep, rewards[0], label, spread=spread)
+        band(axes[1, 0], r["test_episode"], kept(r["test_length"], r["best_length"]), label, spread=spread)
+        band(axes[1, 1], r["test_episode"], rewards[1], label, spread=spread)
+        for row, y in enumerate(rewards):
+            if np.isfinite(y).any():
+                top[row], bottom[row] = max(top[row], float(np.nanmax(y))), min(bottom[row], float(np.nanmin(y)))
     for ax in axes[:, 0]:
         if horizon:
             ax.axhline(horizon, color="grey", ls=":", lw=1)
@@ -88,13 +105,15 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         if optimal_steps:
             ax.axhline(optimal_steps, color="green", ls="--", lw=1)
         ax.set_ylabel("steps per episode")
-    for ax in axes[:, 1]:
+    for row, ax in enumerate(axes[:, 1]):
         ax.set_ylabel("team reward per episode")
         if reward_range is not None:
             lo, hi = reward_range
-            y0, y1 = ax.get_ylim()
             pad = 0.05 * (hi - lo)
-            ax.set_ylim(min(y0, lo - pad), max(y1, hi + pad))
+            ax.set_ylim(lo - pad, max(top[row], hi) + pad)
+            if bottom[row] < lo - pad:
+                ax.text(0.01, 0.01, f"cut off below {lo - pad:g} (invalid-option penalties)", transform=ax.transAxes,
+                        fontsize=8, color="grey", va="bottom")
     if reward_range is not None and max(float(np.nanmax(r["test_return"])) for _, r in series) <= reward_range[0]:
         axes[1, 1].text(0.5, 0.5, "no greedy test triaged a victim\nwithin this budget", transform=axes[1, 1].transAxes,
                         ha="center", va="center", fontsize=11, color="tab:red")
@@ -106,15 +125,19 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
         ax.set_xlabel("training episodes")
     for ax in axes.ravel():
         ax.grid(alpha=0.3)
-    if series[0][0] is not None:
-        axes[0, 0].legend(fontsize=8, loc="upper right")
     n_trials = series[0][1]["train_length"].shape[0]
-    extra = {"horizon (episode cap)": Line2D([], [], color="grey", ls=":", lw=1)}
+    extra = {}
+    if series[0][0] is not None:  # the series' colours, in the key under the axes (not over the curves)
+        extra = {label: Line2D([], [], color=line.get_color(), lw=1.5)
+                 for (label, _), line in zip(series, axes[0, 0].get_lines())}
+    extra["horizon (episode cap)"] = Line2D([], [], color="grey", ls=":", lw=1)
     if optimal_steps:
-        extra[f"optimal ({optimal_steps} steps)"] = Line2D([], [], color="green", ls="--", lw=1)
-    band_key(fig, n_trials, color="grey" if len(series) > 1 else "tab:blue", extra=extra)
+        name = "optimal" if reference == "optimum" else "lower bound"
+        extra[f"{name} ({optimal_steps} steps)"] = Line2D([], [], color="green", ls="--", lw=1)
+    ncol = 4 if len(extra) > 2 else None
+    band_key(fig, n_trials, color="grey" if len(series) > 1 else "tab:blue", extra=extra, spread=spread, ncol=ncol)
     fig.suptitle(title)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.tight_layout(rect=(0, 0.08 if ncol else 0.04, 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

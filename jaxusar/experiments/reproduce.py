@@ -10,7 +10,8 @@ call per trainer, all trainers side by side (one per CPU core), with resumable c
                           planner's optimum; this invocation's wall seconds; versions, config hashes, the
                           machine, workers, devices and processes
     table2.md             the paper's Table II beside ours, and the paper's method stage by stage
-    fig4_subpolicies.png  sub-policy train/test steps vs episodes (paper Fig. 4)
+    fig4_subpolicies.png  sub-policy train/test steps vs episodes (paper Fig. 4; 8 sub-policies a page, then
+                          fig4_subpolicies_2.png, ...)
     fig5_doc.png          option-critic, the K on one figure (paper Fig. 5)
     fig6_iql.png          IQL (paper Fig. 6)
     team_episode.png      the best hierarchical trial's greedy team episode, frame by frame
@@ -18,7 +19,7 @@ call per trainer, all trainers side by side (one per CPU core), with resumable c
     checkpoints/          while running (removed at the end): every trainer's state, for resuming
 
 Each algorithm's settings are its defaults (= ``configs/<algo>.yaml``); ``--quick`` lowers the budgets
-(QUICK below) for a first look in minutes (README: its time). ``sets`` override settings of every algorithm
+(QUICK below) for a first look in minutes (docs/performance.md: its time). ``sets`` override settings of every algorithm
 (``env.horizon=200``) or of one (``iql.train.episodes=100``).
 """
 
@@ -50,7 +51,7 @@ PAPER_TABLE2 = {"hierarchical": "1030", "doc_K2": "1,500", "doc_K4": "never (> 5
 LABELS = {"hierarchical": "Hierarchical (sub-policies + coordinator)", "doc": "Distributed option-critic",
           "iql": "Independent Q-learning"}
 
-# --quick: the same pipeline on budgets that finish in minutes on a 2-core CPU (README: its time).
+# --quick: the same pipeline on budgets that finish in minutes on a 2-core CPU (docs/performance.md: its time).
 QUICK = {
     "hierarchical": ["train.episodes=150", "hierarchical.coordinator.episodes=30"],
     "doc": ["train.episodes=200"],
@@ -104,43 +105,48 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
     keys = train.trial_keys(cfgs["iql"].seed, trials, devices)
     if len({c.seed for c in cfgs.values()}) != 1:
         raise config.ConfigError("every algorithm must use the same seed (the trials are the same seeds)")
-    out = train.prepare_out(out, force, marker="results.json")
-    folders = {a: out / a for a in ALGORITHMS}
-    for f in folders.values():
-        f.mkdir(exist_ok=True)
+    with train.removed_if_refused(out):
+        out = train.prepare_out(out, force, marker="results.json")
+        folders = {a: out / a for a in ALGORITHMS}
+        for f in folders.values():
+            f.mkdir(exist_ok=True)
+        runner = Runner(out / "checkpoints", fingerprint(cfgs, trials), checkpoint_every, devices,
+                        train.stage_progress(quiet))
+        try:
+            setup = {}
+            experiments = {}
+            for a in ALGORITHMS:  # build (and plan) every algorithm before training any
+                t = time.perf_counter()
+                experiments[a] = train.experiment(cfgs[a], keys)
+                setup[a] = time.perf_counter() - t
+            chains = [c for a in ALGORITHMS for c in experiments[a].chains]
+            chains.sort(key=lambda c: -sum(expected_cost(s) for s in c))  # longest first
+            n_workers = train.worker_count(len(chains), workers)
+            if not quiet:
+                print(f"[reproduce] {trials} trials; {len(chains)} trainers, {n_workers} at a time; "
+                      f"{len(trial_devices(devices))} device(s) per trainer; writing {out}", flush=True)
+            outcomes = runner.run(chains, workers=n_workers)
+            outcomes = gather(outcomes, {s.name: s for c in chains for s in c})
+            train_seconds = time.perf_counter() - start
+            if jax.process_index() != 0:
+                return {}
 
-    setup = {}
-    experiments = {}
-    for a in ALGORITHMS:  # build (and plan) every algorithm before training any
-        t = time.perf_counter()
-        experiments[a] = train.experiment(cfgs[a], keys)
-        setup[a] = time.perf_counter() - t
-    chains = [c for a in ALGORITHMS for c in experiments[a].chains]
-    chains.sort(key=lambda c: -sum(expected_cost(s) for s in c))  # longest first
-    runner = Runner(out / "checkpoints", fingerprint(cfgs, trials), checkpoint_every, devices,
-                    train.stage_progress(quiet))
-    n_workers = train.worker_count(len(chains), workers)
-    if not quiet:
-        print(f"[reproduce] {trials} trials; {len(chains)} trainers, {n_workers} at a time; "
-              f"{len(trial_devices(devices))} device(s) per trainer; writing {out}", flush=True)
-    outcomes = runner.run(chains, workers=n_workers)
-    outcomes = gather(outcomes, {s.name: s for c in chains for s in c})
-    train_seconds = time.perf_counter() - start
-    if jax.process_index() != 0:
-        return {}
-
-    per_algorithm, seconds = {}, {}
-    for a in ALGORITHMS:
-        t = time.perf_counter()
-        metrics = experiments[a].finish(folders[a], outcomes, quiet)
-        (folders[a] / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        per_algorithm[a] = metrics
-        stages = [outcomes[s.name] for chain in experiments[a].chains for s in chain]
-        seconds[a] = {"setup": round(setup[a], 2), "compile": round(sum(o.compile_seconds for o in stages), 2),
-                      "run": round(sum(o.run_seconds for o in stages), 2),
-                      "write": round(time.perf_counter() - t, 2)}
+            per_algorithm, seconds = {}, {}
+            for a in ALGORITHMS:
+                t = time.perf_counter()
+                metrics = experiments[a].finish(folders[a], outcomes)
+                (folders[a] / "metrics.json").write_text(json.dumps(metrics, indent=2))
+                per_algorithm[a] = metrics
+                stages = [outcomes[s.name] for chain in experiments[a].chains for s in chain]
+                seconds[a] = {"setup": round(setup[a], 2), "compile": round(sum(o.compile_seconds for o in stages), 2),
+                              "run": round(sum(o.run_seconds for o in stages), 2),
+                              "write": round(time.perf_counter() - t, 2)}
+        except KeyboardInterrupt:
+            raise runner.interrupted() from None
     for name, source in FIGURES.items():
         shutil.copyfile(out / source, out / name)
+    for page in sorted((out / "hierarchical").glob("fig4_subpolicies_*.png")):  # past 8 sub-policies
+        shutil.copyfile(page, out / page.name)
 
     results = summary(per_algorithm, cfgs, trials, quick)
     results["command"] = command or shlex.join(
@@ -158,9 +164,8 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
     (out / "table2.md").write_text(table2(results))
     (out / "results.json").write_text(json.dumps(results, indent=2))
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
-    if not quiet:
-        print("\n" + (out / "table2.md").read_text(), flush=True)
-        print(f"[reproduce] {results['wall_seconds']:.1f}s in all; wrote {out}", flush=True)
+    print("\n" + (out / "table2.md").read_text(), flush=True)
+    print(f"[reproduce] {results['wall_seconds']:.1f}s in all; wrote {out}", flush=True)
     return results
 
 
