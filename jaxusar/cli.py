@@ -69,6 +69,18 @@ def add_demo(subparsers) -> None:
     p.set_defaults(run=demo)
 
 
+def region_lines(graph, victim_region: np.ndarray, agent_region: np.ndarray) -> list[str]:
+    """The demo's region table, one line per region; its columns stay aligned past region 9."""
+    index_width, name_width = len(str(graph.n_regions - 1)), max([14, *map(len, graph.names)])
+    lines = []
+    for r, (name, kind) in enumerate(zip(graph.names, graph.kinds)):
+        victims, agents = np.flatnonzero(victim_region == r).tolist(), np.flatnonzero(agent_region == r).tolist()
+        cells = int((graph.cell_region == r).sum())
+        lines.append(f"  {r:>{index_width}}  {name:<{name_width}} {kind:<5} {cells:3d} cells   "
+                     f"victims {str(victims):<8} agents at start {agents}")
+    return lines
+
+
 def demo(args: argparse.Namespace) -> int:
     import jax
 
@@ -96,11 +108,7 @@ def demo(args: argparse.Namespace) -> int:
     names = [f"{ROLE_WORDS[int(role)]} {i}" for i, role in enumerate(env.roles)]
     victim_region = graph.cell_region[tuple(np.asarray(state.victim_pos).T)]
     print(f"\nRegion graph ({graph.n_regions} region{'s' if graph.n_regions != 1 else ''}):")
-    for r, (name, kind) in enumerate(zip(graph.names, graph.kinds)):
-        victims = np.flatnonzero(victim_region == r).tolist()
-        agents = np.flatnonzero(graph.cell_region[tuple(starts.T)] == r).tolist()
-        cells = int((graph.cell_region == r).sum())
-        print(f"  {r}  {name:<14} {kind:<5} {cells:3d} cells   victims {str(victims):<8} agents at start {agents}")
+    print("\n".join(region_lines(graph, victim_region, graph.cell_region[tuple(starts.T)])))
     print("  edges: " + (", ".join(f"{a} -- {b}" for a, b in graph.edges()) or "(none)"))
 
     # the planner works on fixed victims: where they are drawn, on this reset's draw (a plan that knows it)

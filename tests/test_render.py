@@ -382,3 +382,14 @@ def test_demo_cli_bad_seed(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["demo", "--seed", "-1"])
     assert exit_info.value.code == 2 and "--seed must be >= 0" in capsys.readouterr().err
+
+
+def test_demo_region_table_columns_stay_aligned_past_region_9():
+    from jaxusar.cli import region_lines
+
+    env = envs.make("office")
+    graph = env.graph
+    assert graph.n_regions > 10
+    lines = region_lines(graph, graph.victim_region, graph.cell_region[tuple(env.layout.agent_start.T)])
+    assert len(lines) == graph.n_regions
+    assert len({line.index(" cells") for line in lines}) == 1 and len({line.index("victims") for line in lines}) == 1
