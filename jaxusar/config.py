@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import types
 import typing
 from pathlib import Path
 from typing import Any
@@ -50,16 +51,55 @@ def _unit_interval(x):
     return 0 <= x <= 1
 
 
+def _map_setting(key: str):
+    """The check of env setting ``key``: the env's own (``envs.layout.header_value``); None (the map's own) passes."""
+
+    def check(value) -> bool:
+        if value is None:
+            return True
+        from jaxusar.envs.layout import LayoutError, header_value  # config stays importable without jax
+
+        try:
+            header_value(key, value, "env")
+        except LayoutError:
+            return False
+        return True
+
+    return check
+
+
+# The map settings a layout's header may set (``jaxusar.envs.HEADER_KEYS``): None = the map's own.
+MAP_SETTINGS = ("random_victims", "triage_steps", "critical_triage_steps", "critical_reward", "critical_expires",
+                "view_radius", "observation")
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
+    """The env: ``envs.make(map, **overrides())``. The episode settings always apply; the map settings
+    (``MAP_SETTINGS``) are None unless set, and the map's header (else the contract default) then decides."""
+
     map: str = _field("two_rooms", doc="shipped map name or path to a .txt layout")
     horizon: int = _field(300, _positive, "episode cap; the paper's figures use 300")
     triage_reward: float = _field(100.0, doc="team reward per newly triaged victim")
     step_penalty: float = _field(0.0, doc="team reward added every step")
     start_dir: str = _field("NORTH", lambda s: s.upper() in ("EAST", "SOUTH", "WEST", "NORTH"), "EAST/SOUTH/WEST/NORTH")
+    random_victims: tuple[int, ...] | None = _field(None, _map_setting("random_victims"),
+                                                    "[N_REGULAR, N_CRITICAL] victims drawn at reset on the '?' cells")
+    triage_steps: int | None = _field(None, _map_setting("triage_steps"), "TRIAGE actions a regular victim needs, >= 1")
+    critical_triage_steps: int | None = _field(None, _map_setting("critical_triage_steps"),
+                                               "TRIAGE actions a critical victim needs, >= 1")
+    critical_reward: float | None = _field(None, _map_setting("critical_reward"), "team reward per critical victim")
+    critical_expires: int | str | None = _field(None, _map_setting("critical_expires"),
+                                                "step at which untriaged critical victims die, >= 1, or none")
+    view_radius: int | str | None = _field(None, _map_setting("view_radius"),
+                                           "Chebyshev radius an agent sees within its region, >= 0, or none")
+    observation: str | None = _field(None, _map_setting("observation"),
+                                     "full (the state) or view (each agent its own partial observation)")
 
     def overrides(self) -> dict:
-        return {k: getattr(self, k) for k in ("horizon", "triage_reward", "step_penalty", "start_dir")}
+        """The ``envs.make`` overrides: the episode settings and every map setting that is set."""
+        out = {k: getattr(self, k) for k in ("horizon", "triage_reward", "step_penalty", "start_dir")}
+        return out | {k: getattr(self, k) for k in MAP_SETTINGS if getattr(self, k) is not None}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,7 +258,11 @@ class ExperimentConfig:
     hierarchical: HierarchicalConfig = dataclasses.field(default_factory=HierarchicalConfig)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The config as a dict; map settings left to the map are left out, so a config that sets none
+        reads (and hashes) as it did before they existed."""
+        out = dataclasses.asdict(self)
+        out["env"] = {k: v for k, v in out["env"].items() if k not in MAP_SETTINGS or v is not None}
+        return out
 
     def hash(self) -> str:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
@@ -240,11 +284,35 @@ class ExperimentConfig:
             raise ConfigError(f"train.test_every={t.test_every} exceeds train.episodes={t.episodes}: no test would run")
         if t.chunk_steps < d.train_every:
             raise ConfigError(f"train.chunk_steps={t.chunk_steps} is below dqn.train_every={d.train_every}")
+        check_map_path(self.env.map, "env.map: ")
         return self
+
+
+def check_map_path(name: str, prefix: str = "") -> None:
+    """A map given as a path (it ends in .txt or holds a folder) must be a .txt file that exists: say so,
+    rather than call it an unknown map name. Shipped map names pass."""
+    path = Path(name)
+    if path.suffix != ".txt" and len(path.parts) < 2:
+        return  # a name: shipped or not, the env's error lists the shipped ones
+    if not path.exists():
+        raise ConfigError(f"{prefix}the map file {name!r} does not exist")
+    if not path.is_file() or path.suffix != ".txt":
+        raise ConfigError(f"{prefix}{name!r} is not a .txt layout file")
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):  # the first type that takes the value (None: only as null)
+        arms = typing.get_args(tp)
+        if value is None and type(None) in arms:
+            return None
+        for arm in (a for a in arms if a is not type(None)):
+            try:
+                return _coerce(value, arm, key)
+            except ConfigError:
+                pass
+        names = " or ".join("null" if a is type(None) else getattr(a, "__name__", str(a)) for a in arms)
+        raise ConfigError(f"{key}: expected {names}, got {value!r}")
     if origin is dict:
         kt, vt = typing.get_args(tp)
         if not isinstance(value, dict):

@@ -9,8 +9,9 @@ in ``doc:`` (``jaxusar.config.DOCConfig``) where the sources differ.
 Per agent i (two on the paper's map, any number N elsewhere): K intra-option policies pi_i(a | s, w_i)
 (softmax over the 4 primitive actions) and K terminations beta_i(s, w_i) (sigmoid), one small MLP per
 agent with a policy head (K x 4 logits) and a termination head (K logits) on a shared trunk
-(``doc.actor_hidden``), its own Adam (``doc.actor_lr``). Both agents see the full observation (the task is
-fully observable).
+(``doc.actor_hidden``), its own Adam (``doc.actor_lr``). Every agent sees the full observation; where the
+env gives each agent its own (``observation: view``, ``env.obs_shape`` [N, obs_dim]), agent i's actor
+sees its own row and the centralized critic the joint observation, the N rows side by side.
 
 **Critic.** Q(s, w1, w2), one MLP with K^2 outputs (joint option index w = w1 * K + w2; K^N for N
 agents, agent 1 most significant), trained by the
@@ -93,6 +94,7 @@ from flax import struct
 
 from jaxusar.config import ConfigError, DOCConfig, DQNConfig
 from jaxusar.core import replay as rb
+from jaxusar.core.learners import agent_axis
 from jaxusar.core.qlearning import DQN, DQNState, linear_epsilon
 from jaxusar.envs import N_ACTIONS, USAREnv
 
@@ -233,17 +235,25 @@ def _critic_needs_actor(batch, q_t_target, q_t_online):
 
 
 class OptionCritic:
-    """The learner (protocol in ``jaxusar.core.learners``), for ``n_options`` = K options per agent."""
+    """The learner (protocol in ``jaxusar.core.learners``), for ``n_options`` = K options per agent.
 
-    def __init__(self, obs_dim: int, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig,
+    ``obs_shape``: the env's (an int: a flat vector every agent sees); [N, obs_dim] gives each actor its
+    own row and the critic the rows side by side (``joint_obs``), which is what replay rows store."""
+
+    def __init__(self, obs_shape: int | tuple, n_actions: int, n_options: int, cfg: DQNConfig, doc: DOCConfig,
                  obs_blocks: tuple[int, ...] | None = None, n_agents: int = 2):
-        self.obs_dim, self.n_actions, self.n_options = obs_dim, n_actions, int(n_options)
         self.n_agents = n = int(n_agents)
+        self.per_agent = agent_axis(obs_shape, n)
+        self.obs_dim = obs_shape if isinstance(obs_shape, int) else int(obs_shape[-1])  # one actor's input
+        self.n_actions, self.n_options = n_actions, int(n_options)
         self.cfg, self.doc = cfg, doc
         if cfg.n_step != 1:
             raise ConfigError(f"dqn.n_step={cfg.n_step}: option-critic's U target is one-step (the options in "
                               "force may change at every step); use dqn.n_step=1")
-        self.critic = DQN(obs_dim, self.n_options ** n, cfg, _critic_needs_actor, obs_blocks)
+        critic_dim, critic_blocks = self.obs_dim, obs_blocks
+        if self.per_agent:
+            critic_dim, critic_blocks = n * self.obs_dim, None if obs_blocks is None else tuple(obs_blocks) * n
+        self.critic = DQN(critic_dim, self.n_options ** n, cfg, _critic_needs_actor, critic_blocks)
         # joint index -> options, agent 0 most significant
         self.coords = np.array(list(itertools.product(range(self.n_options), repeat=n)), np.int32)
         self.actor_net = OptionActor(tuple(doc.actor_hidden), self.n_options, n_actions)
@@ -264,19 +274,30 @@ class OptionCritic:
         """The critic's joint index -> int[..., N] options."""
         return jnp.asarray(self.coords)[w]
 
+    def joint_obs(self, obs: jax.Array) -> jax.Array:
+        """The critic's input (what replay rows store) of an env observation: the observation itself, or
+        its N rows [..., N, D] side by side, [..., N * D]."""
+        return obs.reshape(*obs.shape[:-2], -1) if self.per_agent else obs
+
+    def _actors_apply(self, actor_params, obs: jax.Array, **kw):
+        """Every agent's actor on obs [..., D'] (``joint_obs``): the whole of it, or agent i on its own row."""
+        obs = obs.astype(jnp.float32)
+        if not self.per_agent:
+            return jax.vmap(lambda p: self.actor_net.apply(p, obs, **kw))(actor_params)
+        rows = jnp.moveaxis(obs.reshape(*obs.shape[:-1], self.n_agents, self.obs_dim), -2, 0)  # [N, ..., D]
+        return jax.vmap(lambda p, x: self.actor_net.apply(p, x, **kw))(actor_params, rows)
+
     def actor_out(self, actor_params, obs: jax.Array):
-        """(policy logits [N, ..., K, A], termination probabilities [N, ..., K]) for obs [..., D]."""
-        apply = lambda p: self.actor_net.apply(p, obs.astype(jnp.float32))
-        logits, beta_logits = jax.vmap(apply)(actor_params)
+        """(policy logits [N, ..., K, A], termination probabilities [N, ..., K]) for obs [..., D'] (``joint_obs``)."""
+        logits, beta_logits = self._actors_apply(actor_params, obs)
         return logits, jax.nn.sigmoid(beta_logits)
 
     def terminations(self, actor_params, obs: jax.Array) -> jax.Array:
-        """beta_i(s, .) as float[N, ..., K] for obs [..., D]."""
-        apply = lambda p: self.actor_net.apply(p, obs.astype(jnp.float32), method=OptionActor.terminations)
-        return jax.nn.sigmoid(jax.vmap(apply)(actor_params))
+        """beta_i(s, .) as float[N, ..., K] for obs [..., D'] (``joint_obs``)."""
+        return jax.nn.sigmoid(self._actors_apply(actor_params, obs, method=OptionActor.terminations))
 
     def q_joint(self, critic_params, obs: jax.Array) -> jax.Array:
-        """Q(s, w1, ..., wN) as float[..., K, ..., K]."""
+        """Q(s, w1, ..., wN) as float[..., K, ..., K] for obs [..., D'] (``joint_obs``)."""
         q = self.critic.q_values(critic_params, obs)
         return q.reshape(*q.shape[:-1], *(self.n_options,) * self.n_agents)
 
@@ -352,8 +373,9 @@ class OptionCritic:
 
     def _row(self, transition: dict) -> dict:
         options = jnp.maximum(transition["next_carry"], 0)  # the options used for this step
-        return {"obs": transition["obs"], "action": self.joint(options), "primitive": transition["action"],
-                "reward": transition["reward"], "next_obs": transition["next_obs"],
+        return {"obs": self.joint_obs(transition["obs"]), "action": self.joint(options),
+                "primitive": transition["action"], "reward": transition["reward"],
+                "next_obs": self.joint_obs(transition["next_obs"]),
                 "terminal": transition["info"]["terminated"], "done": transition["done"]}
 
     # -- learner protocol ---------------------------------------------------------------------------
@@ -383,6 +405,7 @@ class OptionCritic:
 
     def act(self, state: DOCState, obs, carry, noise, step):
         eps = linear_epsilon(self.cfg, step)
+        obs = self.joint_obs(obs)
         q = self.q_joint(state.critic.params, obs)
         logits, beta = self.actor_out(state.actor, obs)                        # [N, K, A], [N, K]
         w = jnp.maximum(carry, 0)
@@ -407,6 +430,7 @@ class OptionCritic:
         return {"critic": state.critic.params, "actor": state.actor}
 
     def greedy_act(self, params, obs, carry):
+        obs = self.joint_obs(obs)
         q = self.q_joint(params["critic"], obs)
         logits, beta = self.actor_out(params["actor"], obs)
         w = jnp.maximum(carry, 0)
@@ -425,5 +449,5 @@ def make_learner(env: USAREnv, cfg: DQNConfig, doc_cfg: DOCConfig | None = None,
     defaults with K = 2.
     """
     doc_cfg = doc_cfg or DOCConfig()
-    return OptionCritic(env.obs_dim, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg, env.obs_blocks,
+    return OptionCritic(env.obs_shape, N_ACTIONS, options or doc_cfg.options[0], cfg, doc_cfg, env.obs_blocks,
                         env.n_agents)

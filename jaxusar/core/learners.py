@@ -51,6 +51,19 @@ def default_row(transition: dict) -> dict:
             "done": transition["done"]}
 
 
+def agent_axis(obs_shape: int | tuple, n_agents: int) -> bool:
+    """Whether observations of shape ``obs_shape`` (an env's ``obs_shape``, or an int: a flat vector) hold
+    one row per agent on a leading axis (``[n_agents, obs_dim]``, as the USAR world's ``view``) rather than
+    one vector every agent sees (``[obs_dim]``). Any other shape is a ValueError."""
+    shape = (obs_shape,) if isinstance(obs_shape, int) else tuple(obs_shape)
+    if len(shape) == 1:
+        return False
+    if len(shape) == 2 and shape[0] == n_agents:
+        return True
+    raise ValueError(f"observation shape {shape}: expected [obs_dim] (one observation for all) or "
+                     f"[{n_agents}, obs_dim] (one row per agent)")
+
+
 def dqn_target(cfg: DQNConfig, valid_fn: Callable | None = None):
     """The DQN / Double-DQN target (``cfg.double_dqn``) r + discount * max_a q_t[a] of a replay batch:
     one rule for one-step, n-step and SMDP rows (they differ only in what ``sample_returns`` makes).
@@ -73,25 +86,31 @@ def dqn_target(cfg: DQNConfig, valid_fn: Callable | None = None):
 class IndependentDQN:
     """``n`` DQNs with their own parameters, optimizers and replay buffers, acting side by side.
 
-    Learner ``i`` sees the whole observation and picks ``action[i]``; nothing is shared (independent
-    Q-learning, Tan 1993). With ``n = 1`` it is a single-agent DQN (``action`` has shape [1]).
+    Learner ``i`` picks ``action[i]``; nothing is shared (independent Q-learning, Tan 1993). It sees the
+    whole observation, or, where the observation holds one row per agent (``obs_shape`` [n, obs_dim]:
+    partial observability), its own row ``obs[i]``, and its replay rows store that row only. With
+    ``n = 1`` it is a single-agent DQN (``action`` has shape [1]).
 
     Args:
-      obs_dim, n_actions, n: sizes. cfg: DQNConfig.
+      obs_shape: the observation's shape (``env.obs_shape``): [obs_dim], or [n, obs_dim] for one row per
+        learner (``agent_axis``); an int is [obs_dim]. n_actions, n: sizes. cfg: DQNConfig.
       target_fn(batch, q_t_target, q_t_online) -> float[B]: the learner's target rule (see qlearning).
       row_fn(transition) -> dict: the replay row of learner-independent fields (defaults to
         ``default_row``); the trainer's transition has obs, action, reward, next_obs, done, info.
       valid_fn(obs) -> bool[n_actions]: actions allowed in ``obs`` (e.g. options whose initiation set
-        holds); None = all. Random exploration only ever picks valid actions.
+        holds; with one row per learner, ``obs`` is the learner's row); None = all. Random exploration
+        only ever picks valid actions.
       mask_greedy: whether the greedy choice is restricted to valid actions too (False: the learner
         must learn validity itself, e.g. from a penalty).
       obs_blocks: the widths of the one-hot blocks the observation is made of (``env.obs_blocks``): replay
         rows then store one small integer per block (``replay.OneHotCodec``); None = one uint8 per feature.
     """
 
-    def __init__(self, obs_dim: int, n_actions: int, n: int, cfg: DQNConfig, target_fn: Callable,
+    def __init__(self, obs_shape: int | tuple, n_actions: int, n: int, cfg: DQNConfig, target_fn: Callable,
                  row_fn: Callable = default_row, valid_fn: Callable | None = None, mask_greedy: bool = True,
                  obs_blocks: tuple[int, ...] | None = None):
+        self.per_agent = agent_axis(obs_shape, n)
+        obs_dim = obs_shape if isinstance(obs_shape, int) else int(obs_shape[-1])
         self.dqn = DQN(obs_dim, n_actions, cfg, target_fn, obs_blocks)
         self.cfg, self.n, self.n_actions, self.obs_dim = cfg, n, n_actions, obs_dim
         self.row_fn, self.valid_fn, self.mask_greedy = row_fn, valid_fn, mask_greedy
@@ -100,11 +119,13 @@ class IndependentDQN:
         self.update_noise = {"sample": (n, cfg.batch_size)}
 
     def _rows(self, transition: dict, params=None) -> dict:
-        """The shared row, broadcast to every learner, with each learner's own action and, for n-step
-        returns cut at exploring actions, whether that action was the greedy one under ``params`` (those
-        it was chosen with)."""
+        """The shared row, broadcast to every learner, with each learner's own action (and, with one
+        observation row per learner, its own ``obs`` and ``next_obs`` rows) and, for n-step returns cut at
+        exploring actions, whether that action was the greedy one under ``params`` (those it was chosen with)."""
         row = self.row_fn(transition)
+        own = {k: row.pop(k) for k in ("obs", "next_obs") if self.per_agent and k in row}  # already [n, obs_dim]
         rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.n, *jnp.shape(x))), row)
+        rows.update(own)
         rows["action"] = transition["action"]
         if self.cfg.n_step > 1 and self.cfg.n_step_cut_exploring:  # see replay.sample_returns
             greedy = transition["action"] if params is None else \
@@ -120,14 +141,21 @@ class IndependentDQN:
         return jnp.zeros((), jnp.int32)
 
     def _q(self, params, obs):
-        return jax.vmap(self.dqn.q_values, in_axes=(0, None))(params, obs)  # [n, A]
+        """float[n, A]: learner i's Q-values at the whole ``obs``, or at its own row ``obs[i]``."""
+        return jax.vmap(self.dqn.q_values, in_axes=(0, 0 if self.per_agent else None))(params, obs)
 
     def _valid(self, obs):
-        return None if self.valid_fn is None else self.valid_fn(obs)
+        """None, bool[A] (one for every learner) or, with one row per learner, bool[n, A]."""
+        if self.valid_fn is None:
+            return None
+        return jax.vmap(self.valid_fn)(obs) if self.per_agent else self.valid_fn(obs)
 
     def act(self, state, obs, carry, noise, step):
         eps = linear_epsilon(self.cfg, step)
         q, valid = self._q(state.params, obs), self._valid(obs)
+        if self.per_agent and valid is not None:
+            pick = lambda q_i, v_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, v_i, self.mask_greedy)
+            return jax.vmap(pick)(q, valid, noise["explore"], noise["action"]), carry
         pick = lambda q_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua, valid, self.mask_greedy)
         return jax.vmap(pick)(q, noise["explore"], noise["action"]), carry
 

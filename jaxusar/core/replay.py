@@ -36,21 +36,31 @@ class OneHotCodec:
             raise ValueError(f"one-hot block sizes must be >= 1, got {self.sizes}")
         self.dim = sum(self.sizes)
         self.dtype = jnp.uint8 if max(self.sizes) < 256 else jnp.uint16
+        # Static index tables, so that encode and decode are a few array ops whatever the number of blocks
+        # (a map's observation may hold hundreds: one op per block made XLA compiles take minutes).
+        sizes = np.asarray(self.sizes)
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self._block_of = np.repeat(np.arange(len(sizes)), sizes)             # feature -> its block
+        self._place = np.arange(self.dim) - offsets[self._block_of]          # feature -> its place in the block
+        self._groups = []  # per block width: (the blocks of that width, their features [blocks, width])
+        for size in np.unique(sizes):
+            blocks = np.flatnonzero(sizes == size)
+            self._groups.append((int(size), blocks, offsets[blocks][:, None] + np.arange(size)))
+        self._order = np.argsort(np.concatenate([blocks for _, blocks, _ in self._groups]), kind="stable")
 
     def encode(self, obs: jax.Array) -> jax.Array:
         obs = jnp.asarray(obs)
         if obs.shape[-1] != self.dim:
             raise ValueError(f"observation of width {obs.shape[-1]}, the one-hot blocks {self.sizes} sum to {self.dim}")
-        codes, start = [], 0
-        for size in self.sizes:
-            block = obs[..., start:start + size] > 0
+        hot = obs > 0
+        codes = []
+        for size, _, features in self._groups:  # the index of each block's first 1, its width where it has none
+            block = hot[..., features]  # [..., blocks, size]
             codes.append(jnp.where(block.any(-1), jnp.argmax(block, -1), size))
-            start += size
-        return jnp.stack(codes, -1).astype(self.dtype)
+        return jnp.concatenate(codes, -1)[..., self._order].astype(self.dtype)
 
     def decode(self, codes: jax.Array) -> jax.Array:
-        return jnp.concatenate([jax.nn.one_hot(codes[..., b].astype(jnp.int32), size, dtype=jnp.float32)
-                                for b, size in enumerate(self.sizes)], -1)
+        return (codes[..., self._block_of].astype(jnp.int32) == self._place).astype(jnp.float32)
 
 
 @struct.dataclass

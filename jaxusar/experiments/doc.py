@@ -35,6 +35,8 @@ from jaxusar.experiments.train import environment_info, flat_metrics, write_tria
 class Experiment:
     """One chain per K (their networks differ in shape), the same trial keys for every K, largest K first."""
 
+    FIGURES = ("fig5_doc.png",)
+
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array, options: tuple[int, ...] | None = None):
         ks = tuple(int(k) for k in (options or cfg.doc.options))
         if not ks or any(k < 1 for k in ks) or len(set(ks)) != len(ks):
@@ -52,7 +54,7 @@ class Experiment:
                               optimal_steps=self.optimal)
             self.chains.append([Stage(f"doc/K{k}", trainer, keys)])
 
-    def finish(self, out: Path, outcomes: dict, quiet: bool = False) -> dict:
+    def finish(self, out: Path, outcomes: dict) -> dict:
         cfg, ks = self.cfg, self.ks
         per_k = {}
         for k in ks:
@@ -62,13 +64,13 @@ class Experiment:
             per_k[k] = flat_metrics(cfg, o.results, self.reference, o, options=k)
             write_trial_files(k_out, o.results)
             (k_out / "metrics.json").write_text(json.dumps(per_k[k], indent=2))
-            if not quiet:
-                m = per_k[k]
-                print(f"[doc K={k}] {in_words(m['episodes_to_optimal'], cfg.train.episodes)}; task solved (any "
-                      f"length) in {sum(e is not None for e in m['episodes_to_solved'])} of {m['trials']}", flush=True)
+            m = per_k[k]
+            print(f"[doc K={k}] {in_words(m['episodes_to_optimal'], cfg.train.episodes)}; task solved (any "
+                  f"length) in {sum(e is not None for e in m['episodes_to_solved'])} of {m['trials']}", flush=True)
         series = [(f"{k} options", outcomes[f"doc/K{k}"].results) for k in ks]
         training_figure(series, out / "fig5_doc.png", f"simplified distributed option-critic on {cfg.env.map}",
-                        horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env))
+                        horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env),
+                        reference=self.reference["reference"])
         keep = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal", "episodes_to_solved",
                 "best_test_return", "best_test_steps", "optimality_gap", "env_steps_per_trial", "seconds")
         return {

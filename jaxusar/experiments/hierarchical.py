@@ -9,7 +9,8 @@ Output folder::
     curves.csv            stage (subpolicy|coordinator), task, trial, kind, episode, return, steps, optimal,
                           start_optimal (the test episode from its start), coverage (sub-policies: the
                           fraction of initiation states from which the greedy policy is optimal)
-    fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials; and
+    fig4_subpolicies.png  train and test steps per task (paper Fig. 4), band over trials, 8 tasks a page
+                          (fig4_subpolicies_2.png, ... past 8); and
     fig4_<task>.png       the same for each sub-policy alone
     coordinator.png       the coordinator's train and test curves
     team_episode.png      the best trial's greedy team episode, as a strip of frames
@@ -37,12 +38,16 @@ from jaxusar.experiments.runner import Stage
 from jaxusar.experiments.stats import in_words, summarize
 from jaxusar.experiments.train import environment_info, reference_metrics, stage_seconds
 
+PAGE_TASKS = 8  # sub-policies per page of fig4_subpolicies*.png (office has 23: three pages, not one of 69 panels)
+TITLE_PLAN_CHARS = 160  # team_episode.png lists the coordinator's decisions in its title up to this length
+
 
 def build(cfg: ExperimentConfig, subpolicy_act=None):
     """Everything the two stages need. ``subpolicy_act(params, obs) -> action[1]``: how the coordinator's
     macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
     gives exact ones)."""
     env = envs.make(cfg.env.map, **cfg.env.overrides())
+    check_supported(env)
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
     options = options_from_graph(env.graph, h.navigation)
     if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
@@ -84,6 +89,25 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
                 sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,
                 optimal=optimal, reference=reference)
+
+
+def unsupported_features(env) -> list[str]:
+    """The features of ``env`` (contract part 2) that the paper's options, sub-policies and coordinator do
+    not model: its TRIAGE options end at a one-action triage of a victim known from the start, no agent
+    clears rubble, and the coordinator sees every victim's triaged flag."""
+    missing = [("rubble", env.has_rubble), ("engineers", env.has_engineers),
+               ("victims drawn at reset", env.n_drawn > 0), ("multi-step triage", env.multi_step),
+               ("expiring critical victims", env.expires),
+               ("partial observability (observation=view)", env.observation == "view")]
+    return [name for name, present in missing if present]
+
+
+def check_supported(env) -> None:
+    """A one-line ConfigError, before anything compiles, where ``env`` has a feature the method lacks."""
+    missing = unsupported_features(env)
+    if missing:
+        raise ConfigError(f"the hierarchical method cannot run on map {env.layout.name!r}: its options and "
+                          f"sub-policies do not model {', '.join(missing)} yet (iql and doc train there)")
 
 
 def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> None:
@@ -150,7 +174,8 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
     return states, np.asarray(rewards, np.float32), decisions
 
 
-def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, optimal: np.ndarray):
+def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, optimal: np.ndarray,
+                     title: str | None = None):
     """Paper Fig. 4: per task, train steps (moving average) and test steps vs episodes, band over trials,
     and beside them the fraction of the option's initiation states from which the greedy policy is optimal."""
     import matplotlib
@@ -186,16 +211,86 @@ def subpolicy_figure(results: dict, names: list[str], path: Path, horizon: int, 
     band_key(fig, tl.shape[0], extra={
         "optimal (shortest path; 100% of states)": Line2D([], [], color="green", ls="--", lw=1),
         "horizon (episode cap)": Line2D([], [], color="grey", ls=":", lw=1)})
-    fig.suptitle("Sub-policies on pseudo-rewards (paper Fig. 4); right: the % of the option's initiation states "
-                 "from which the greedy policy takes a shortest path", fontsize=10)
-    fig.tight_layout(rect=(0, 0.6 / (2.4 * n), 1, 1))
+    fig.suptitle(title or "Sub-policies on pseudo-rewards (paper Fig. 4); right: the % of the option's initiation "
+                 "states from which the greedy policy takes a shortest path", fontsize=10)
+    # the key and the title keep fixed heights (a fraction of a tall figure left the title over the first row)
+    fig.tight_layout(rect=(0, 0.6 / (2.4 * n), 1, 1 - 0.45 / (2.4 * n)))
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def subpolicy_pages(results: dict, names: list[str], out: Path, horizon: int, optimal: np.ndarray) -> list[Path]:
+    """``subpolicy_figure`` of every task, ``PAGE_TASKS`` per page: ``fig4_subpolicies.png``, then
+    ``fig4_subpolicies_2.png``, ... Returns the pages' paths."""
+    pages = [list(range(k, min(k + PAGE_TASKS, len(names)))) for k in range(0, len(names), PAGE_TASKS)]
+    paths = []
+    for p, tasks in enumerate(pages):
+        page = {n: (v if n == "test_episode" else np.asarray(v)[tasks]) for n, v in results.items()
+                if n in ("train_length", "test_length", "test_coverage", "best_length", "best_coverage", "test_episode")}
+        path = out / ("fig4_subpolicies.png" if p == 0 else f"fig4_subpolicies_{p + 1}.png")
+        title = None if len(pages) == 1 else (
+            f"Sub-policies on pseudo-rewards (paper Fig. 4), page {p + 1} of {len(pages)}: {tasks[0] + 1}-{tasks[-1] + 1} "
+            f"of {len(names)}; right: the % of the initiation states from which the greedy policy is optimal")
+        subpolicy_figure(page, [names[k] for k in tasks], path, horizon, np.asarray(optimal)[tasks], title)
+        paths.append(path)
+    return paths
+
+
+def summary_lines(metrics: dict, per_subpolicy: int, coordinator: int) -> list[str]:
+    """What the console says at the end of a run, from its metrics: what the budget is made of, how many
+    sub-policies are exact from every state, the best greedy team episode against the reference, then the
+    counts of episodes to optimal (the coordinator's alone; end to end, which needs both).
+
+    Trial by trial up to 8 trials, summed up past that."""
+    tasks, trials, ref = metrics["tasks"], metrics["trials"], metrics["optimal_team_steps"]
+    n, by_trial = len(tasks), trials <= 8
+    budget = n * per_subpolicy + coordinator
+    lines = [f"budget per trial: {n} sub-policies x {per_subpolicy:,} episodes + {coordinator:,} coordinator "
+             f"episodes = {budget:,} episodes"]
+
+    per_task = metrics["subpolicy_episodes_to_optimal"]["per_task"]
+    exact = [sum(per_task[t][j] is not None for t in tasks) for j in range(trials)]
+    text = (", ".join(f"trial {j}: {e}/{n}" for j, e in enumerate(exact)) if by_trial else
+            f"all {n} in {sum(e == n for e in exact)} of {trials} trials, fewest {min(exact)}/{n}")
+    coverage = metrics["subpolicy_coverage"]
+    misses = [(coverage[t][j], t, j) for t in tasks for j in range(trials) if per_task[t][j] is None]
+    if misses:
+        c, t, j = min(misses)
+        text += (f"; the least: {t} in trial {j}, optimal from {c:.1%} of its "
+                 f"{metrics['subpolicy_initiation_states'][t]:,} states")
+    lines.append(f"sub-policies greedy-optimal from every state they may start in: {text}")
+
+    exact_ref = metrics["reference"] == "optimum"
+    what = (f"the optimum is {ref} steps (exact joint search)" if exact_ref else
+            f"the lower bound is {ref} steps (the exact optimum is out of the search's reach; a team at the bound "
+            "is optimal)")
+    steps, gaps = metrics["best_team_test_steps"], metrics["optimality_gap"]
+    if by_trial:
+        teams = ", ".join(f"trial {j}: " + (f"{s} steps" if g is not None else "no test triaged every victim")
+                          for j, (s, g) in enumerate(zip(steps, gaps)))
+    else:
+        solved = [s for s, g in zip(steps, gaps) if g is not None]
+        teams = (f"every victim triaged in {len(solved)} of {trials} trials"
+                 + (f", in {min(solved)} to {max(solved)} steps (median {np.median(solved):g})" if solved else ""))
+    at = sum(g is not None and s <= ref for s, g in zip(steps, gaps))
+    lines.append(f"best greedy team episode (the coordinator over its trial's sub-policies): {teams}; {what}; "
+                 f"{at} of {trials} trials at it")
+
+    lines.append(f"the coordinator alone (its team episode at the {'optimum' if exact_ref else 'bound'}, "
+                 f"whatever its sub-policies): {in_words(metrics['coordinator_episodes_to_optimal'], coordinator)}")
+    lines.append("end to end, as Table II counts (every sub-policy exact from every state, then the coordinator): "
+                 f"{in_words(metrics['episodes_to_optimal'], budget)}")
+    lines.append("the same with each sub-policy judged by the paper's single-start test: "
+                 f"{in_words(metrics['episodes_to_optimal_single_start'], budget)}")
+    return lines
 
 
 class Experiment:
     """Two stages in one chain: the sub-policies (lanes ordered [trial, task], one vmapped call), then
     the coordinator (one lane per trial) over each trial's best sub-policy params."""
+
+    FIGURES = ("fig4_subpolicies.png (_2, _3, ...: 8 sub-policies a page)", "fig4_<task>.png", "coordinator.png",
+               "team_episode.png")
 
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
         self.cfg, self.trials = cfg, len(keys)
@@ -215,7 +310,7 @@ class Experiment:
         n_tasks = len(self.b["tasks"])
         return jax.tree.map(lambda a: jnp.asarray(a).reshape(-1, n_tasks, *np.shape(a)[1:]), lanes)
 
-    def finish(self, out: Path, outcomes: dict, quiet: bool = False) -> dict:
+    def finish(self, out: Path, outcomes: dict) -> dict:
         b, cfg, tasks = self.b, self.cfg, self.b["tasks"]
         n_tasks = len(tasks)
         sub_o, co_o = outcomes["hierarchical/subpolicies"], outcomes["hierarchical/coordinator"]
@@ -265,13 +360,8 @@ class Experiment:
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }
         write_outputs(out, b, sub, co, best_sub, metrics)
-        if not quiet:
-            budget = n_tasks * cfg.train.episodes + cfg.hierarchical.coordinator.episodes
-            print(f"[hierarchical] end to end (sub-policy episodes + the coordinator's): {in_words(eto, budget)}.\n"
-                  f"[hierarchical] with each sub-policy judged by the paper's single-start test: "
-                  f"{in_words(metrics['episodes_to_optimal_single_start'], budget)}.\n"
-                  f"[hierarchical] the coordinator over its trial's sub-policies: "
-                  f"{in_words(co['episodes_to_optimal'], cfg.hierarchical.coordinator.episodes)}.", flush=True)
+        for line in summary_lines(metrics, cfg.train.episodes, cfg.hierarchical.coordinator.episodes):
+            print(f"[hierarchical] {line}", flush=True)
         return metrics
 
 
@@ -305,7 +395,7 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
                                      t.test_starts[0, 2]])
            if len(t.test_starts) == 1 else -1 for k, t in enumerate(tasks)]
     names = [t.name for t in tasks]
-    subpolicy_figure(sub, names, out / "fig4_subpolicies.png", env.horizon, np.asarray(opt))
+    subpolicy_pages(sub, names, out, env.horizon, np.asarray(opt))
     for k, name in enumerate(names):  # and one figure per sub-policy, as the paper's Fig. 4 panels
         one = {**{n: v[k:k + 1] for n, v in sub.items()
                   if n in ("train_length", "test_length", "test_coverage", "best_length", "best_coverage")},
@@ -313,7 +403,8 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
         subpolicy_figure(one, [name], out / f"fig4_{name.replace(':', '_').lower()}.png", env.horizon,
                          np.asarray(opt[k:k + 1]))
     training_figure(co, out / "coordinator.png", "coordinator (SMDP DQN over joint options)", horizon=env.horizon,
-                    optimal_steps=b["optimal"], smooth_window=5, reward_range=reward_range(env))
+                    optimal_steps=b["optimal"], smooth_window=5, reward_range=reward_range(env),
+                    reference=b["reference"]["reference"])
     # the best trial: optimal soonest, else the best team test
     order = sorted(range(trials), key=lambda j: (metrics["episodes_to_optimal"][j] is None,
                                                   metrics["episodes_to_optimal"][j] or 0,
@@ -326,6 +417,8 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
 
     plan = "   ".join(f"{i + 1}) " + ", ".join(f"medic {a}: {o}" for a, o in enumerate(d[:-1]))
                        + ("" if d[-1] else " (invalid)") for i, d in enumerate(decisions))
+    if len(plan) > TITLE_PLAN_CHARS:  # a long plan made a title of several lines wider than the frames
+        plan = f"{len(decisions)} decisions, listed in metrics.json (best_trial)"
     save_episode_strip(env, states, out / "team_episode.png", rewards=rewards,
                        suptitle=f"best trial {j}: greedy coordinator + sub-policies, {len(rewards)} steps, "
                                 f"return {rewards.sum():g}\nthe coordinator's joint options: {plan}")

@@ -1,13 +1,14 @@
 """Run one algorithm's N trials and write its results folder (side effects live here, not in core).
 
-An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage``: the trainers to run)
-and ``finish(out, outcomes, quiet) -> metrics`` (writes everything but metrics.json). A flat learner
+An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage``: the trainers to run),
+``finish(out, outcomes) -> metrics`` (writes everything but metrics.json, prints the result lines) and
+``FIGURES`` (the figures it writes, for ``jaxusar train --help``). A flat learner
 (IQL, or a fork's ``jaxusar/algos/<name>.py`` with ``ALGORITHM`` and ``make_learner``) gets
 ``FlatExperiment``; the hierarchical method and option-critic name theirs (``EXPERIMENT``:
 ``jaxusar/experiments/hierarchical.py``, ``doc.py``).
 ``run`` drives one experiment (``jaxusar train``); ``jaxusar.experiments.reproduce`` drives several.
 
-Output folder of a flat learner::
+Output folder of a flat learner (default ``runs/<algo>-<map>``, ``default_out``)::
 
     metrics.json        algorithm, trials, episodes_to_optimal (list over trials, null = never),
                         summary statistics, wall_seconds (compile included), resolved config, versions
@@ -19,7 +20,9 @@ Output folder of a flat learner::
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import hashlib
 import importlib
 import json
 import os
@@ -61,7 +64,13 @@ def cpu_name() -> str:
 
 
 def print_progress(name: str, p: dict) -> None:
-    """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk)."""
+    """One progress line of trainer ``name`` (``p``: what Trainer.train reports after a chunk, or the
+    Runner's notice that the stage resumed from a checkpoint)."""
+    if "resumed_from" in p:
+        done = "finished before, not run again" if p["finished"] else f"continuing after chunk {p['chunk']}"
+        print(f"[{name}] resumed from {p['resumed_from']}: {done} ({p['run_seconds']:.0f} s of training "
+              "done before)", flush=True)
+        return
     to_go = "time to go not known yet" if p["eta"] is None else f"about {p['eta']:.0f} s to go"
     print(f"[{name}] chunk {p['chunk']}: episodes done {p['episodes_min']}/{p['episodes_total']} in the slowest "
           f"trial (mean {p['episodes_mean']:.0f}); {p['elapsed']:.0f} s elapsed, {to_go}", flush=True)
@@ -118,12 +127,23 @@ def save_params(folder: Path, best_params) -> None:
         (folder / f"trial_{k}.msgpack").write_bytes(serialization.to_bytes(trial))
 
 
+def default_out(cfg: ExperimentConfig) -> Path:
+    """``runs/<algo>-<map>`` (a layout path's file name without .txt), so runs on two maps do not collide."""
+    return Path("runs") / f"{cfg.algo}-{Path(cfg.env.map).stem}"
+
+
+def run_fingerprint(cfg: ExperimentConfig, trials: int) -> str:
+    """What a checkpoint must have been written by to resume: the config and the number of trials."""
+    return hashlib.sha256(json.dumps({"trials": trials, "config": cfg.hash()}).encode()).hexdigest()[:12]
+
+
 def prepare_out(out: str | Path, force: bool, marker: str = "metrics.json") -> Path:
     """Create ``out``; refuse if a finished run (its ``marker`` file) is there, unless ``force``, which
     also drops the checkpoints of an unfinished one (else a re-run resumes from them)."""
     out = Path(out)
     if (out / marker).exists() and not force:
-        raise FileExistsError(f"{out / marker} exists: a finished run is never overwritten; pass --force")
+        raise FileExistsError(f"{out / marker} exists: a finished run is never overwritten; write this one "
+                              "elsewhere with --out DIR, or pass --force to replace it")
     try:
         if force:
             shutil.rmtree(out / "checkpoints", ignore_errors=True)
@@ -131,6 +151,25 @@ def prepare_out(out: str | Path, force: bool, marker: str = "metrics.json") -> P
     except OSError as err:
         raise FileExistsError(f"cannot create the output folder {str(out)!r}: {err.strerror or err}") from None
     return out
+
+
+@contextlib.contextmanager
+def removed_if_refused(out: str | Path):
+    """Run a command that writes into ``out``: if it ends with an error (bad input found late, Ctrl-C
+    before the first checkpoint), the folders it created there and left empty are removed again."""
+    out = Path(out).absolute()
+    new = [p for p in (out, *out.parents) if not p.exists()]
+    root = new[-1] if new else out
+    before = set() if new else {Path(d) for d, _, _ in os.walk(out)}
+    try:
+        yield
+    except BaseException:
+        if root.is_dir():
+            for folder, _, _ in os.walk(root, topdown=False):  # deepest first: a parent empties after its children
+                if Path(folder) not in before:
+                    with contextlib.suppress(OSError):  # not empty: something was written there
+                        os.rmdir(folder)
+        raise
 
 
 def stage_seconds(outcome: Outcome) -> dict:
@@ -170,61 +209,75 @@ def write_trial_files(out: Path, results: dict) -> None:
 class FlatExperiment:
     """One Trainer over the trials: IQL, or any learner in jaxusar/algos without an EXPERIMENT of its own."""
 
+    FIGURES = ("curves.png",)
+
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
         self.cfg = cfg
         self.env, self.reference, _, trainer = build(cfg)
         self.chains = [[Stage(cfg.algo, trainer, keys)]]
 
-    def finish(self, out: Path, outcomes: dict[str, Outcome], quiet: bool = False) -> dict:
+    def finish(self, out: Path, outcomes: dict[str, Outcome]) -> dict:
         cfg, o = self.cfg, outcomes[self.cfg.algo]
         results = o.results
         metrics = flat_metrics(cfg, results, self.reference, o)
         write_trial_files(out, results)
         training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
-                        optimal_steps=self.reference["steps"], reward_range=reward_range(self.env))
-        if not quiet:
-            print(f"[{cfg.algo}] {in_words(results['episodes_to_optimal'], cfg.train.episodes)}", flush=True)
+                        optimal_steps=self.reference["steps"], reward_range=reward_range(self.env),
+                        reference=self.reference["reference"])
+        print(f"[{cfg.algo}] {in_words(results['episodes_to_optimal'], cfg.train.episodes)}", flush=True)
         return metrics
+
+
+def experiment_class(algo: str):
+    """The experiment class of ``algo``: its ``EXPERIMENT`` module's, else FlatExperiment."""
+    name = getattr(algos.algorithm(algo), "EXPERIMENT", None)
+    return FlatExperiment if name is None else importlib.import_module(name).Experiment
 
 
 def experiment(cfg: ExperimentConfig, keys: jax.Array, **extra):
     """The experiment object of ``cfg.algo``: its ``EXPERIMENT`` module's, else a FlatExperiment."""
-    name = getattr(algos.algorithm(cfg.algo), "EXPERIMENT", None)
-    if name is None:
-        if extra:
-            raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}")
-        return FlatExperiment(cfg, keys)
-    return importlib.import_module(name).Experiment(cfg, keys, **extra)
+    cls = experiment_class(cfg.algo)
+    if cls is FlatExperiment and extra:
+        raise ConfigError(f"{sorted(extra)} do not apply to {cfg.algo}")
+    return cls(cfg, keys, **extra)
 
 
 def stage_progress(quiet: bool):
     return None if quiet else print_progress
 
 
-def run(cfg: ExperimentConfig, trials: int, out: str | Path, force: bool = False, quiet: bool = False,
-        checkpoint_every: float = 60.0, devices=None, command: str | None = None, **extra) -> dict:
-    """Train ``trials`` seeds of ``cfg.algo`` (one vmapped call per trainer) and write the results folder.
+def run(cfg: ExperimentConfig, trials: int, out: str | Path | None = None, force: bool = False,
+        quiet: bool = False, checkpoint_every: float = 60.0, devices=None, command: str | None = None,
+        **extra) -> dict:
+    """Train ``trials`` seeds of ``cfg.algo`` (one vmapped call per trainer) and write the results folder
+    ``out`` (default ``default_out(cfg)``).
 
     Resumes from ``out/checkpoints`` if an earlier run of the same config was interrupted. Returns metrics;
-    ``command`` (the command line that ran it) is recorded in them.
+    ``command`` (the command line that ran it) is recorded in them. ``quiet``: no progress lines (the
+    result lines are printed all the same). Ctrl-C raises ``runner.Interrupted``.
     """
     start, usage = time.perf_counter(), Usage()
     keys = trial_keys(cfg.seed, trials, devices)
-    out = prepare_out(out, force)
-    exp = experiment(cfg, keys, **extra)
-    runner = Runner(out / "checkpoints", cfg.hash(), checkpoint_every, devices, stage_progress(quiet))
-    outcomes = runner.run(exp.chains, workers=worker_count(len(exp.chains)))
-    outcomes = gather(outcomes, {s.name: s for chain in exp.chains for s in chain})
-    if jax.process_index() != 0:
-        return {}
-    metrics = exp.finish(out, outcomes, quiet)
+    out = default_out(cfg) if out is None else Path(out)
+    with removed_if_refused(out):
+        out = prepare_out(out, force)
+        runner = Runner(out / "checkpoints", run_fingerprint(cfg, trials), checkpoint_every, devices,
+                        stage_progress(quiet))
+        try:
+            exp = experiment(cfg, keys, **extra)
+            outcomes = runner.run(exp.chains, workers=worker_count(len(exp.chains)))
+            outcomes = gather(outcomes, {s.name: s for chain in exp.chains for s in chain})
+            if jax.process_index() != 0:
+                return {}
+            metrics = exp.finish(out, outcomes)
+        except KeyboardInterrupt:
+            raise runner.interrupted() from None
     metrics["wall_seconds"] = round(time.perf_counter() - start, 2)
     metrics["command"] = command
     metrics["usage"] = usage.report()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
-    if not quiet:
-        print(f"[{cfg.algo}] {metrics['wall_seconds']:.1f}s; wrote {out}", flush=True)
+    print(f"[{cfg.algo}] {metrics['wall_seconds']:.1f}s; wrote {out}", flush=True)
     return metrics
 
 
