@@ -330,7 +330,7 @@ DEFAULTS = {"dqn": {"double_dqn": True}}
 
 
 def make_learner(env, cfg):
-    return IndependentDQN(env.obs_dim, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg), obs_blocks=env.obs_blocks)
+    return IndependentDQN(env.obs_shape, N_ACTIONS, env.n_agents, cfg, dqn_target(cfg), obs_blocks=env.obs_blocks)
 '''
 
 
