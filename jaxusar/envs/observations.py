@@ -76,8 +76,7 @@ class Encoder:
         open_ = ~layout.blocked
         self.unseen_at_reset = np.argwhere(open_ & ~env.seen_at_reset).astype(np.int32)
         self.victim_cells = np.concatenate([layout.victim_pos, layout.random_cells]).astype(np.int32)
-        self.window = None if env.view_radius is None else int(np.clip(env.view_radius, 1, 3))
-        self.window = 2 if self.window is None else self.window
+        self.window = 2 if env.view_radius is None else int(np.clip(env.view_radius, 1, 3))
         self.offsets = window_offsets(self.window)
         pose = (h, w, 4)
         if env.part1:
