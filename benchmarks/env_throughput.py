@@ -10,7 +10,8 @@ resets); ``none`` never resets (a done world steps on: its clock runs past the h
 changes but what the actions do), the cost of ``env.step`` alone. One env-step = one world advanced one
 joint step, whatever its number of agents.
 
-A map is ``NAME`` or ``NAME:OBSERVATION`` (``full`` or ``view``). Compile time is reported separately:
+A map is ``NAME``, ``NAME:OBSERVATION`` (``full`` or ``view``) or ``NAME:OBSERVATION:ENCODING``
+(``one_hot``, the default, or ``codes``: one integer per one-hot block, ``USAREnv``'s ``encoding``). Compile time is reported separately:
 the first call (compile + run) is timed on its own; then ``--repeats`` rounds each time one call of every
 map in turn (so a load that comes and goes on a shared machine falls on every map alike), and each map's
 median is reported, with its ratio to the first map's.
@@ -44,14 +45,18 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-MAPS = ["two_rooms", "two_rooms_rubble:full", "two_rooms_rubble:view", "minimap:full", "minimap:view"]
+MAPS = ["two_rooms", "two_rooms_rubble:full", "two_rooms_rubble:view", "minimap:full", "minimap:view",
+        "two_rooms:full:codes", "minimap:view:codes"]
 
 
 def make_env(spec: str, horizon: int):
     from jaxusar import envs
 
-    name, _, observation = spec.partition(":")
-    return envs.make(name, horizon=horizon, **({"observation": observation} if observation else {}))
+    name, observation, encoding = (spec.split(":") + ["", ""])[:3]
+    settings = {"observation": observation} if observation else {}
+    if encoding:
+        settings["encoding"] = encoding
+    return envs.make(name, horizon=horizon, **settings)
 
 
 def make_run(env, batch: int, steps: int, chunk: int, reset_done: bool = True):

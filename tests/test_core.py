@@ -78,8 +78,9 @@ def test_one_hot_codec_is_lossless_on_every_env_observation():
     obs = jnp.concatenate([jax.nn.one_hot(jnp.array([0, 299, 7]), 300), jax.nn.one_hot(jnp.array([1, 0, 1]), 2)], -1)
     assert wide.encode(obs).dtype == jnp.uint16
     np.testing.assert_array_equal(wide.decode(wide.encode(obs)), obs)
-    zeros = rb.OneHotCodec((3, 1, 2))  # an all-zero block is stored as its width
-    np.testing.assert_array_equal(zeros.encode(jnp.array([0, 0, 0, 1, 0, 1.0])), [3, 0, 1])
+    zeros = rb.OneHotCodec((3, 1, 2))  # an all-zero block is stored as its width, a flag as its value
+    np.testing.assert_array_equal(zeros.encode(jnp.array([0, 0, 0, 1, 0, 1.0])), [3, 1, 1])
+    np.testing.assert_array_equal(zeros.encode(jnp.array([0, 1, 0, 0, 1, 0.0])), [1, 0, 0])
     np.testing.assert_array_equal(zeros.decode(zeros.encode(jnp.array([0, 0, 0, 1, 0, 1.0]))), [0, 0, 0, 1, 0, 1])
     with pytest.raises(ValueError, match="sum to 6"):
         zeros.encode(jnp.zeros(5))

@@ -67,11 +67,13 @@ class OneHotDense(nn.Module):
     def __call__(self, x):
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
-        codes = rb.OneHotCodec(self.sizes).encode(x).astype(jnp.int32)  # [..., blocks]; width = all zero
-        sizes = jnp.asarray(self.sizes)
+        codes = rb.OneHotCodec(self.sizes).encode(x).astype(jnp.int32)  # [..., blocks]
+        sizes = np.asarray(self.sizes)
         offsets = jnp.asarray(np.cumsum((0,) + tuple(self.sizes[:-1])))
-        rows = kernel[offsets + jnp.minimum(codes, sizes - 1)]  # [..., blocks, features]
-        return jnp.sum(jnp.where((codes < sizes)[..., None], rows, 0.0), axis=-2) + bias
+        flag = jnp.asarray(sizes == 1)
+        rows = kernel[offsets + jnp.where(flag, 0, jnp.minimum(codes, jnp.asarray(sizes) - 1))]  # [..., blocks, features]
+        hot = jnp.where(flag, codes == 1, codes < jnp.asarray(sizes))  # the block has a 1
+        return jnp.sum(jnp.where(hot[..., None], rows, 0.0), axis=-2) + bias
 
 
 class MLP(nn.Module):

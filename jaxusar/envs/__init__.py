@@ -14,8 +14,9 @@ from jaxusar.envs.usar import (
     TURN_RIGHT, WEST, EnvState, USAREnv,
 )
 
-# Episode parameters, then the map settings a layout's header may also set (an override wins).
-OVERRIDES = ("horizon", "triage_reward", "step_penalty", "start_dir") + tuple(HEADER_KEYS)
+# Episode parameters, then the map settings a layout's header may also set (an override wins), then the
+# observation's encoding (``USAREnv``: one-hot float32 blocks, or one integer code per block).
+OVERRIDES = ("horizon", "triage_reward", "step_penalty", "start_dir") + tuple(HEADER_KEYS) + ("encoding",)
 
 
 def make(name: str | Layout, **overrides) -> USAREnv:

@@ -35,6 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxusar.core.replay import OneHotCodec
+
 # Classes of a cell in the egocentric window, in the priority they are assigned (first match wins).
 CELL_CLASSES = ("wall", "agent", "rubble", "not seen", "regular victim", "critical victim",
                 "triaged or dead victim", "floor")
@@ -44,8 +46,8 @@ VICTIM_CELL_CLASSES = ("not seen", "no victim", "regular victim", "critical vict
 
 
 def time_bits(t: jax.Array, n_bits: int) -> jax.Array:
-    """float32[n_bits]: ``t`` in binary, least significant bit first."""
-    return ((t >> jnp.arange(n_bits)) & 1).astype(jnp.float32)
+    """int32[n_bits]: ``t`` in binary, least significant bit first."""
+    return (t >> jnp.arange(n_bits)) & 1
 
 
 def window_offsets(radius: int) -> np.ndarray:
@@ -78,6 +80,8 @@ class Encoder:
         self.victim_cells = np.concatenate([layout.victim_pos, layout.random_cells]).astype(np.int32)
         self.window = 2 if env.view_radius is None else int(np.clip(env.view_radius, 1, 3))
         self.offsets = window_offsets(self.window)
+        # per facing, the window's cells as indices into the north-up (2k+1)^2 patch around the agent
+        self.turns = (self.offsets[..., 0] + self.window) * (2 * self.window + 1) + self.offsets[..., 1] + self.window
         pose = (h, w, 4)
         if env.part1:
             self.full_blocks = pose * env.n_agents + (1,) * env.n_victims
@@ -91,85 +95,96 @@ class Encoder:
                             + (len(VICTIM_CELL_CLASSES),) * len(self.victim_cells) + (1,) * len(self.rubble_cells)
                             + ((int(env.needed.max()),) if self.staged else ())
                             + ((1,) * self.time_bits if env.expires else ()))
+        self.full_codec, self.view_codec = OneHotCodec(self.full_blocks), OneHotCodec(self.view_blocks)
+        self.drawn_cell_index = np.zeros((h, w), np.int32)  # a '?' cell's index among them
+        self.drawn_cell_index[tuple(layout.random_cells.T)] = np.arange(len(layout.random_cells))
 
     # -- full ---------------------------------------------------------------------------------------
-    def full(self, state) -> jax.Array:
+    def full_codes(self, state) -> jax.Array:
+        """int32[len(full_blocks)]: the ``full`` observation, one code per block."""
         env = self.env
-        parts = []
-        for i in range(env.n_agents):
-            parts += [jax.nn.one_hot(state.agent_pos[i, 0], env.height), jax.nn.one_hot(state.agent_pos[i, 1], env.width),
-                      jax.nn.one_hot(state.agent_dir[i], 4)]
-        parts.append(state.triaged.astype(jnp.float32))
+        parts = [state.agent_pos, state.agent_dir[:, None]]
+        parts = [jnp.concatenate(parts, 1).ravel(), state.triaged]
         if env.part1:
-            return jnp.concatenate(parts)
+            return jnp.concatenate(parts).astype(jnp.int32)
         if len(self.rubble_cells):
-            parts.append(state.rubble[tuple(self.rubble_cells.T)].astype(jnp.float32))
+            parts.append(state.rubble[tuple(self.rubble_cells.T)])
         if env.n_drawn:
-            cells = jnp.asarray(env.layout.random_cells)
             drawn = state.victim_pos[env.n_fixed:]
-            at = jnp.all(drawn[:, None, :] == cells[None, :, :], -1)  # [n_drawn, n_cells]
-            parts.append(at.astype(jnp.float32).ravel())
-        for k in self.staged:
-            parts.append(jax.nn.one_hot(state.progress[k], int(env.needed[k]) + 1))
+            parts.append(jnp.asarray(self.drawn_cell_index)[drawn[:, 0], drawn[:, 1]])
+        if self.staged:
+            parts.append(state.progress[np.asarray(self.staged)])
         if env.expires:
-            parts.append(state.dead[self.critical].astype(jnp.float32))
+            parts.append(state.dead[self.critical])
         parts.append(time_bits(state.t, self.time_bits))
         if len(self.unseen_at_reset):
-            parts.append(state.seen[tuple(self.unseen_at_reset.T)].astype(jnp.float32))
-        return jnp.concatenate(parts)
+            parts.append(state.seen[tuple(self.unseen_at_reset.T)])
+        return jnp.concatenate([p.astype(jnp.int32) for p in parts])
 
     # -- view ---------------------------------------------------------------------------------------
-    def _cell_classes(self, state, victim_at) -> jax.Array:
-        """int32[H, W]: the window class of every cell, as the team sees it."""
-        env = self.env
-        kind = jnp.asarray(env.victim_kind)
-        v = jnp.maximum(victim_at, 0)
-        living = jnp.where(kind[v] == 1, CRITICAL_VICTIM, REGULAR_VICTIM)
-        victim = jnp.where(state.triaged[v] | state.dead[v], DONE_VICTIM, living)
-        cls = jnp.where((victim_at >= 0) & state.seen, victim, FLOOR)
-        cls = jnp.where(state.seen, cls, NOT_SEEN)
-        cls = jnp.where(state.rubble, RUBBLE, cls)
-        cls = cls.at[state.agent_pos[:, 0], state.agent_pos[:, 1]].set(AGENT)
-        return jnp.where(jnp.asarray(env.blocked), WALL, cls)
+    def _victim_codes(self, state) -> jax.Array:
+        """int32[n_victims]: each victim's ``VICTIM_CELL_CLASSES`` index, as if seen."""
+        alive = jnp.asarray(np.where(self.env.victim_kind == 1, 3, 2))
+        return jnp.where(state.dead, 5, jnp.where(state.triaged, 4, alive))
 
-    def _victim_cells(self, state, victim_at) -> jax.Array:
-        """int32[n_cells]: ``VICTIM_CELL_CLASSES`` index of each cell a victim may be in."""
+    def view_codes(self, state, victim_at) -> jax.Array:
+        """int32[n_agents, len(view_blocks)]: the ``view`` observation, one code per block.
+
+        Every cell the view reads (window cells, victim cells, the cells in front) is looked up in one
+        packed grid, padded by the window's radius with wall: bit 0 seen, bit 1 rubble, bit 2 wall, bit 3
+        (in the windows) an agent, the victim index + 1 above. Elementwise work, slices and small gathers
+        only: on CPU a scatter (of the agents or the victims into a grid) or a gather per cell of the
+        grid costs more than the rest together."""
         env = self.env
-        cells = self.victim_cells
-        k = victim_at[tuple(cells.T)]
-        v = jnp.maximum(k, 0)
-        alive = jnp.where(jnp.asarray(env.victim_kind)[v] == 1, 3, 2)
-        known = jnp.where(state.dead[v], 5, jnp.where(state.triaged[v], 4, alive))
-        known = jnp.where(k >= 0, known, 1)
-        return jnp.where(state.seen[tuple(cells.T)], known, 0)
+        k = self.window
+        grid = (victim_at + 1) * 16 + state.seen.astype(jnp.int32) + 4 * jnp.asarray(env.blocked, jnp.int32)
+        if len(self.rubble_cells):
+            grid = grid + 2 * state.rubble.astype(jnp.int32)
+        grid = jnp.pad(grid, k, constant_values=4)
+        codes = self._victim_codes(state)
+        pos, d = state.agent_pos, state.agent_dir
+
+        def look(cells):  # cells [..., 2] (grid coordinates) -> (seen, rubble, wall, victim index or -1)
+            g = grid[cells[..., 0] + k, cells[..., 1] + k]
+            return (g & 1) > 0, (g & 2) > 0, (g & 4) > 0, (g >> 4) - 1
+
+        # Each window: a slice of the grid around the agent (north up), with a bit for the agents in it,
+        # then turned to the agent's facing by a select among its four rotations.
+        side = 2 * k + 1
+        patch = jax.vmap(lambda p: jax.lax.dynamic_slice(grid, (p[0], p[1]), (side, side)))(pos).reshape(-1, side * side)
+        rel = pos[None, :, :] - pos[:, None, :] + k  # [i, j, 2]: agent j in agent i's patch
+        inside = jnp.all((rel >= 0) & (rel < side), -1)
+        at = jnp.where(inside, rel[..., 0] * side + rel[..., 1], -1)
+        patch = patch + 8 * jnp.any(at[:, :, None] == np.arange(side * side), 1)  # bit 3: an agent
+        turns = [patch[:, order] for order in self.turns]
+        g = jnp.select([d[:, None] == f for f in range(3)], turns[:3], turns[3])
+        seen, rubble, wall, agent, v1 = (g & 1) > 0, (g & 2) > 0, (g & 4) > 0, (g & 8) > 0, g >> 4
+        living = jnp.asarray(np.array([FLOOR, FLOOR, REGULAR_VICTIM, CRITICAL_VICTIM, DONE_VICTIM, DONE_VICTIM]))
+        window = jnp.concatenate([jnp.array([FLOOR]), living[codes]])[v1]  # by victim index + 1
+        window = jnp.where(seen, window, NOT_SEEN)
+        window = jnp.where(rubble, RUBBLE, window)
+        window = jnp.where(wall, WALL, jnp.where(agent, AGENT, window))
+
+        seen, _, _, v = look(jnp.asarray(self.victim_cells))  # what the team knows of each victim cell
+        team = [jnp.where(seen, jnp.where(v >= 0, codes[jnp.maximum(v, 0)], 1), 0)]
+        if len(self.rubble_cells):
+            team.append(state.rubble[tuple(self.rubble_cells.T)])
+        own = [pos, d[:, None], jnp.asarray(env.roles == 1, jnp.int32)[:, None], window]
+        tail = []
+        if self.staged:  # the progress of the victim in front, where it is seen and still needs triage
+            seen, _, _, v = look(pos + jnp.asarray(np.asarray(env.dir_delta))[d])
+            shown = seen & (v >= 0) & (codes[jnp.maximum(v, 0)] < 4)
+            tail.append(jnp.where(shown, state.progress[jnp.maximum(v, 0)], 0)[:, None])
+        if env.expires:
+            tail.append(jnp.broadcast_to(time_bits(state.t, self.time_bits), (env.n_agents, self.time_bits)))
+        team = jnp.concatenate([x.astype(jnp.int32) for x in team])
+        rows = own + [jnp.broadcast_to(team, (env.n_agents, len(team)))] + tail
+        return jnp.concatenate([r.astype(jnp.int32) for r in rows], 1)
+
+    def full(self, state) -> jax.Array:
+        """float32[obs_dim]: the ``full`` observation (its codes' one-hot blocks)."""
+        return self.full_codec.decode(self.full_codes(state))
 
     def view(self, state, victim_at) -> jax.Array:
-        env = self.env
-        h, w = env.height, env.width
-        classes = self._cell_classes(state, victim_at)
-        k = self.window
-        padded = jnp.pad(classes, k, constant_values=WALL)
-        shared = [jax.nn.one_hot(self._victim_cells(state, victim_at), len(VICTIM_CELL_CLASSES)).ravel()]
-        if len(self.rubble_cells):
-            shared.append(state.rubble[tuple(self.rubble_cells.T)].astype(jnp.float32))
-        if env.expires:
-            shared.append(time_bits(state.t, self.time_bits))
-        shared = jnp.concatenate(shared)
-        offsets = jnp.asarray(self.offsets)
-        delta = jnp.asarray(np.asarray(env.dir_delta))
-        rows = []
-        for i in range(env.n_agents):
-            pos, d = state.agent_pos[i], state.agent_dir[i]
-            cells = pos + offsets[d] + k
-            window = padded[cells[:, 0], cells[:, 1]]
-            part = [jax.nn.one_hot(pos[0], h), jax.nn.one_hot(pos[1], w), jax.nn.one_hot(d, 4),
-                    jnp.full((1,), float(env.roles[i] == 1)), jax.nn.one_hot(window, len(CELL_CLASSES)).ravel()]
-            if self.staged:
-                front = jnp.clip(pos + delta[d], 0, jnp.array([h - 1, w - 1]))
-                inside = jnp.all(pos + delta[d] == front)
-                v = victim_at[front[0], front[1]]
-                shown = inside & (v >= 0) & state.seen[front[0], front[1]]
-                shown = shown & ~state.triaged[jnp.maximum(v, 0)] & ~state.dead[jnp.maximum(v, 0)]
-                part.append(jax.nn.one_hot(jnp.where(shown, state.progress[jnp.maximum(v, 0)], 0), int(env.needed.max())))
-            rows.append(jnp.concatenate(part + [shared]))
-        return jnp.stack(rows)
+        """float32[n_agents, obs_dim]: the ``view`` observation (its codes' one-hot blocks)."""
+        return self.view_codec.decode(self.view_codes(state, victim_at))

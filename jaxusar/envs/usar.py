@@ -35,6 +35,7 @@ from flax import struct
 
 from jaxusar.envs.graph import RegionGraph
 from jaxusar.envs.layout import CRITICAL, ENGINEER, HEADER_KEYS, Layout, check_victims, header_value
+from jaxusar.core.replay import OneHotCodec
 from jaxusar.envs.observations import Encoder
 
 EAST, SOUTH, WEST, NORTH = 0, 1, 2, 3
@@ -42,6 +43,8 @@ DIRECTION_NAMES = ("EAST", "SOUTH", "WEST", "NORTH")
 FORWARD, TURN_LEFT, TURN_RIGHT, TRIAGE = 0, 1, 2, 3
 ACTION_NAMES = ("FORWARD", "TURN_LEFT", "TURN_RIGHT", "TRIAGE")
 N_ACTIONS = 4
+# How an observation is given: one-hot float32 blocks (the contract's), or one integer code per block.
+ENCODINGS = ("one_hot", "codes")
 # (d_row, d_col) of one FORWARD step per direction, in Minigrid order.
 DIR_DELTA = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int32)
 
@@ -121,17 +124,15 @@ def apply_actions(solid, victim_at, agent_pos, agent_dir, triaged, actions):
 
 def draw_without_replacement(key: jax.Array, n: int, k: int) -> jax.Array:
     """int32[k]: k distinct indices of 0..n-1, uniformly without replacement (every ordered k-subset equally
-    likely): the j-th is uniform among the n - j not yet drawn. k uniforms and k small scans instead of a
-    sort of n random keys (``jax.random.choice(replace=False)``), which dominates a vmapped auto-reset."""
+    likely): the first k steps of a Fisher-Yates shuffle, the j-th pick uniform among the n - j not yet
+    drawn. k uniforms and k swaps instead of a sort of n random keys (``jax.random.choice(replace=False)``,
+    20x slower vmapped on CPU), which would dominate a vmapped auto-reset."""
     u = jax.random.uniform(key, (k,))
-    taken = jnp.zeros((n,), bool)
-    picks = []
+    perm = jnp.arange(n, dtype=jnp.int32)
     for j in range(k):
-        rank = jnp.minimum((u[j] * (n - j)).astype(jnp.int32), n - j - 1)  # among the cells left
-        cell = jnp.argmax((jnp.cumsum(~taken) == rank + 1) & ~taken).astype(jnp.int32)
-        taken = taken.at[cell].set(True)
-        picks.append(cell)
-    return jnp.stack(picks)
+        r = j + jnp.minimum((u[j] * (n - j)).astype(jnp.int32), n - j - 1)  # among positions j..n-1
+        perm = perm.at[r].set(perm[j]).at[j].set(perm[r])
+    return perm[:k]
 
 
 def _check_override(name: str, value: Any, kind: type, low=None, high=None) -> None:
@@ -160,12 +161,16 @@ class USAREnv:
     victims' triaged flags: 2 x (10 + 15 + 4) + 2 = 60 numbers on two_rooms) and elsewhere that vector
     with what else determines the state. ``observation="view"`` is float32[n_agents, obs_dim]: each
     agent's pose, an egocentric window rotated to its facing, the floor plan's rubble, and victims only
-    in cells the team has seen. ``obs_shape`` is the shape, ``obs_blocks`` the widths of one row's
-    one-hot blocks.
+    in cells the team has seen. ``obs_blocks`` are the widths of one row's one-hot blocks, ``obs_dim``
+    their sum. With ``encoding="codes"`` each block is given as one integer instead (``obs_codec``, a
+    ``core.replay.OneHotCodec``: the index of its 1, a flag's value), uint8 where every block is narrower
+    than 256, and ``obs_codec.decode`` gives the float observation back; the same information in
+    1/10 to 1/20 of the numbers, for learners that embed or look up codes. ``obs_shape`` and
+    ``obs_dtype`` are those of the observation as given.
     """
 
     def __init__(self, layout: Layout, horizon: int = 100, triage_reward: float = 100.0,
-                 step_penalty: float = 0.0, start_dir: int | str = NORTH, **settings):
+                 step_penalty: float = 0.0, start_dir: int | str = NORTH, encoding: str = "one_hot", **settings):
         if isinstance(start_dir, str):
             if start_dir.upper() not in DIRECTION_NAMES:
                 raise ValueError(f"override start_dir={start_dir!r}: expected one of {DIRECTION_NAMES} or 0..3")
@@ -174,6 +179,8 @@ class USAREnv:
         _check_override("triage_reward", triage_reward, float)
         _check_override("step_penalty", step_penalty, float)
         _check_override("start_dir", start_dir, int, 0, 3)
+        if encoding not in ENCODINGS:
+            raise ValueError(f"override encoding={encoding!r}: expected one of {', '.join(ENCODINGS)}")
         map_settings = {**HEADER_KEYS, **layout.header}
         for key, value in settings.items():
             map_settings[key] = header_value(key, value, f"map {layout.name!r}, override")
@@ -184,6 +191,7 @@ class USAREnv:
         self.triage_reward = float(triage_reward)
         self.step_penalty = float(step_penalty)
         self.start_dir = int(start_dir)
+        self.encoding = encoding
         for key, value in map_settings.items():
             setattr(self, key, value)
         self.height, self.width = layout.shape
@@ -216,8 +224,11 @@ class USAREnv:
         self._encoder = Encoder(self)
         blocks = self._encoder.full_blocks if self.observation == "full" else self._encoder.view_blocks
         self.obs_blocks = tuple(blocks)  # one-hot widths of one observation row
+        self.obs_codec = OneHotCodec(self.obs_blocks)
         self.obs_dim = sum(self.obs_blocks)
-        self.obs_shape = (self.obs_dim,) if self.observation == "full" else (self.n_agents, self.obs_dim)
+        row = self.obs_dim if encoding == "one_hot" else len(self.obs_blocks)
+        self.obs_shape = (row,) if self.observation == "full" else (self.n_agents, row)
+        self.obs_dtype = jnp.float32 if encoding == "one_hot" else self.obs_codec.dtype
 
     def __repr__(self) -> str:
         extra = "".join(f", {k}={getattr(self, k)!r}" for k, v in HEADER_KEYS.items() if getattr(self, k) != v)
@@ -286,11 +297,15 @@ class USAREnv:
         return state.replace(**filled)
 
     def observe(self, state: EnvState) -> jax.Array:
-        """The observation of ``state`` (``observation``: ``full`` or ``view``; see the class doc)."""
+        """The observation of ``state`` (``observation``: ``full`` or ``view``; ``encoding``: one-hot
+        float32, or ``codes``, one integer per block; see the class doc)."""
         state = self.complete(state)
+        enc = self._encoder
         if self.observation == "full":
-            return self._encoder.full(state)
-        return self._encoder.view(state, self._victim_cells(state)[1])
+            codes = enc.full_codes(state)
+        else:
+            codes = enc.view_codes(state, self._victim_cells(state)[1])
+        return self.obs_codec.decode(codes) if self.encoding == "one_hot" else codes.astype(self.obs_dtype)
 
     def step(self, key: jax.Array, state: EnvState, actions: jax.Array):
         """One joint step. Returns (obs, state, reward float32, done bool, info).
