@@ -7,7 +7,11 @@ For a config (default: the IQL defaults), measures
     vmapped, replay sampling included), expressed in env steps/s (updates/s x train_every);
   * ratio trainer / ceiling (aim: >= 0.5), and the flashbax item buffer's add+sample cost beside ours.
 
-    python benchmarks/train_throughput.py --trials 8 [--set dqn.hidden=[32,32] ...] [--out FILE]
+With several algorithms (``--algo iql vdn qmix``) each gets the same measurements, their timed chunks
+taken in turns so that the machine's drift hits all alike, and each is reported as wall time per env step
+relative to the first (issue: value decomposition within 1.2x of IQL).
+
+    python benchmarks/train_throughput.py --trials 8 [--algo iql vdn qmix] [--set dqn.hidden=[32,32] ...]
 """
 
 from __future__ import annotations
@@ -40,21 +44,29 @@ def timed(fn, *args, repeats=3):
     return first, statistics.median(times)
 
 
-def trainer_throughput(trainer, trials, chunks):
-    state = trainer.init(jax.random.split(jax.random.PRNGKey(0), trials))
-    t = time.perf_counter()
-    state = trainer.run_chunk(state)
-    jax.block_until_ready(state.step)
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(chunks):
+def trainer_throughput(trainers: dict, trials: int, chunks: int) -> tuple[dict, dict]:
+    """({name: throughput}, {name: final state}): one compile chunk each, then `chunks` timed rounds of one
+    chunk per trainer in turn; the median chunk per trainer."""
+    states, first, times = {}, {}, {name: [] for name in trainers}
+
+    def chunk(name):
         t = time.perf_counter()
-        state = trainer.run_chunk(state)
-        jax.block_until_ready(state.step)
-        times.append(time.perf_counter() - t)
-    per_chunk = statistics.median(times)
-    return {"compile_and_first_chunk_s": first, "chunk_s": per_chunk,
-            "env_steps_per_s": trials * trainer.chunk_steps / per_chunk}, state
+        states[name] = trainers[name].run_chunk(states[name])
+        jax.block_until_ready(states[name].step)
+        return time.perf_counter() - t
+
+    for name, trainer in trainers.items():
+        states[name] = trainer.init(jax.random.split(jax.random.PRNGKey(0), trials))
+        first[name] = chunk(name)
+    for _ in range(chunks):
+        for name in trainers:
+            times[name].append(chunk(name))
+    out = {}
+    for name, trainer in trainers.items():
+        per_chunk = statistics.median(times[name])
+        out[name] = {"compile_and_first_chunk_s": first[name], "chunk_s": per_chunk,
+                     "env_steps_per_s": trials * trainer.chunk_steps / per_chunk}
+    return out, states
 
 
 def update_ceiling(trainer, state, trials, updates):
@@ -113,27 +125,35 @@ def replay_comparison(capacity=50_000, batch=32, obs_dim=60, n=2000):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--algo", default="iql")
+    p.add_argument("--algo", nargs="+", default=["iql"], help="flat learners to measure (default: iql)")
     p.add_argument("--config", default=None)
     p.add_argument("--set", dest="sets", action="append", default=[])
     p.add_argument("--trials", type=int, default=8)
     p.add_argument("--chunks", type=int, default=3, help="timed chunks after the compile chunk")
     p.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = p.parse_args(argv)
-    cfg = config.load(args.config, args.sets, defaults=algos.defaults(args.algo))
-    _, _, _, trainer = build(cfg)
-    tr, state = trainer_throughput(trainer, args.trials, args.chunks)
-    ceiling = update_ceiling(trainer, state, args.trials, updates=trainer.iters)
-    result = {"algo": args.algo, "trials": args.trials, "dqn": cfg.to_dict()["dqn"], "chunk_steps": trainer.chunk_steps,
-              "trainer": tr, "ceiling": ceiling, "ratio": tr["env_steps_per_s"] / ceiling["env_steps_per_s"],
-              "replay": replay_comparison(), "environment": environment_info()}
-    print(f"{args.algo}, {args.trials} trials, hidden {cfg.dqn.hidden}, batch {cfg.dqn.batch_size}, "
-          f"update every {cfg.dqn.train_every} env steps")
-    print(f"  trainer : {tr['env_steps_per_s']:>12,.0f} env steps/s  (chunk {tr['chunk_s']:.2f}s, "
-          f"compile+first chunk {tr['compile_and_first_chunk_s']:.1f}s)")
-    print(f"  ceiling : {ceiling['env_steps_per_s']:>12,.0f} env steps/s  ({ceiling['updates_per_s']:,.0f} updates/s, "
-          "bare vmapped updates)")
-    print(f"  ratio   : {result['ratio']:.2f}")
+    cfgs = {name: config.load(args.config, args.sets, defaults=algos.defaults(name)) for name in args.algo}
+    trainers = {name: build(cfg)[3] for name, cfg in cfgs.items()}
+    throughput, states = trainer_throughput(trainers, args.trials, args.chunks)
+    base = throughput[args.algo[0]]["env_steps_per_s"]
+    runs = []
+    for name, trainer in trainers.items():
+        cfg, tr = cfgs[name], throughput[name]
+        ceiling = update_ceiling(trainer, states[name], args.trials, updates=trainer.iters)
+        runs.append({"algo": name, "trials": args.trials, "dqn": cfg.to_dict()["dqn"], "env": cfg.to_dict()["env"],
+                     "chunk_steps": trainer.chunk_steps, "trainer": tr, "ceiling": ceiling,
+                     "ratio": tr["env_steps_per_s"] / ceiling["env_steps_per_s"],
+                     "wall_per_env_step_vs_first": base / tr["env_steps_per_s"]})
+        print(f"{name} on {cfg.env.map}, {args.trials} trials, hidden {cfg.dqn.hidden}, batch {cfg.dqn.batch_size}, "
+              f"update every {cfg.dqn.train_every} env steps")
+        print(f"  trainer : {tr['env_steps_per_s']:>12,.0f} env steps/s  (chunk {tr['chunk_s']:.2f}s, "
+              f"compile+first chunk {tr['compile_and_first_chunk_s']:.1f}s)")
+        print(f"  ceiling : {ceiling['env_steps_per_s']:>12,.0f} env steps/s  ({ceiling['updates_per_s']:,.0f} "
+              "updates/s, bare vmapped updates)")
+        print(f"  ratio   : {runs[-1]['ratio']:.2f}")
+        if len(trainers) > 1:
+            print(f"  wall per env step: {runs[-1]['wall_per_env_step_vs_first']:.2f}x {args.algo[0]}'s")
+    result = {"runs": runs, "replay": replay_comparison(), "environment": environment_info()}
     for k, v in result["replay"].items():
         print(f"  {k}: {v if isinstance(v, str) else f'{v:.2f}'}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

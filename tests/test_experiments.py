@@ -181,13 +181,13 @@ def sets(*kvs: str) -> list[str]:
 
 @pytest.mark.parametrize("navigation", ["chained", "goal"])
 def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(navigation, tmp_path, capsys):
-    """What `jaxusar train --help` lists trains on a tiny budget: iql above, doc in
-    tests/test_option_critic.py (test_runner_learns_to_triage_on_a_tiny_map_and_writes_results), and the
-    paper's method here, with its default config (and with goal-conditioned navigation), on a map without
-    the two-rooms map's task names."""
+    """What `jaxusar train --help` lists trains on a tiny budget: iql above, vdn and qmix in
+    tests/test_value_decomposition.py, doc in tests/test_option_critic.py
+    (test_runner_learns_to_triage_on_a_tiny_map_and_writes_results), and the paper's method here, with its
+    default config (and with goal-conditioned navigation), on a map without the two-rooms map's task names."""
     from jaxusar import algos
 
-    assert sorted(algos.registry()) == ["doc", "hierarchical", "iql"]
+    assert sorted(algos.registry()) == ["doc", "hierarchical", "iql", "qmix", "vdn"]
     assert algos.registry()["hierarchical"].__name__ == "jaxusar.algos.coordinator"
     out = tmp_path / "hierarchical"
     assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet",
@@ -273,7 +273,7 @@ def test_modules_that_are_parts_of_an_algorithm_are_not_trainable(name, capsys):
     with pytest.raises(SystemExit) as e:
         main(["train", name])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "unknown algorithm" in err and "doc, hierarchical, iql" in err
+    assert e.value.code == 2 and "unknown algorithm" in err and "doc, hierarchical, iql, qmix, vdn" in err
 
 
 def test_map_settings_apply_on_their_map_only(tmp_path, capsys):

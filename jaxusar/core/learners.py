@@ -21,11 +21,14 @@ from __future__ import annotations
 
 from typing import Callable, Protocol
 
+import chex
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
+from flax import struct
 
-from jaxusar.config import DQNConfig
-from jaxusar.core.qlearning import (NEG_INF, DQN, double_q_learning_target, epsilon_greedy, linear_epsilon,
+from jaxusar.config import ConfigError, DQNConfig
+from jaxusar.core.qlearning import (MLP, NEG_INF, DQN, double_q_learning_target, epsilon_greedy, linear_epsilon,
                                     q_learning_target)
 
 
@@ -236,3 +239,132 @@ class FactoredDQN:
     def greedy_act(self, params, obs, carry):
         q = jnp.where(self.valid_fn(obs), self._heads(self.dqn.q_values(params, obs)), -jnp.inf)
         return jnp.argmax(q, axis=-1).astype(jnp.int32), carry
+
+
+# -- value decomposition: agents' Q-values mixed into the team's ------------------------------------
+@struct.dataclass
+class TeamQ:
+    """A ``TeamNetwork``'s output at observations with leading axes ``[...]``: everything the team's loss
+    needs there, so ``DQN``'s ``action_value`` and ``target_fn`` hooks need no parameters of their own."""
+
+    agents: jax.Array  # float[..., n, A]: each agent's Q-values at its observation
+    state: jax.Array   # float[..., S]: what the mixer conditions on
+    mixer: object      # the mixer's params, of whichever network (online or target) was applied
+
+
+class TeamNetwork:
+    """``n`` agents' Q-networks (one ``agent`` MLP each, params stacked on a leading agent axis, as
+    ``IndependentDQN``'s) and a ``mixer``, with flax's ``init``/``apply``: ``apply(params, obs)`` is a ``TeamQ``.
+
+    Agent ``i`` sees the whole observation, or its own row ``obs[..., i, :]`` where the observation holds
+    one per agent; the mixer's state is the observation, or the agents' rows concatenated.
+    ``mixer``: a flax module, ``mixer(q float[..., n], state float[..., S]) -> float[...]``.
+    """
+
+    def __init__(self, agent: nn.Module, mixer: nn.Module, n: int, per_agent: bool):
+        self.agent, self.mixer, self.n, self.per_agent = agent, mixer, n, per_agent
+
+    def state(self, obs: jax.Array) -> jax.Array:
+        return obs.reshape(*obs.shape[:-2], -1) if self.per_agent else obs
+
+    def init(self, key, obs: jax.Array) -> dict:
+        """{"agents", "mixer"}; agent i's params are ``IndependentDQN``'s learner i's (the same keys)."""
+        agents = jax.vmap(self.agent.init, in_axes=(0, None))(jax.random.split(key, self.n),
+                                                               obs[0] if self.per_agent else obs)
+        q = jnp.zeros((*obs.shape[:obs.ndim - 1 - self.per_agent], self.n), jnp.float32)
+        return {"agents": agents, "mixer": self.mixer.init(jax.random.fold_in(key, self.n), q, self.state(obs))}
+
+    def agent_q(self, agent_params, obs: jax.Array) -> jax.Array:
+        """float[..., n, A]: every agent's Q-values (all a decentralised policy needs)."""
+        return jax.vmap(self.agent.apply, in_axes=(0, -2 if self.per_agent else None), out_axes=-2)(agent_params, obs)
+
+    def apply(self, params: dict, obs: jax.Array) -> TeamQ:
+        return TeamQ(self.agent_q(params["agents"], obs), self.state(obs), params["mixer"])
+
+    def mix(self, q: TeamQ, chosen: jax.Array) -> jax.Array:
+        """float[...]: the team's Q from each agent's value ``chosen`` float[..., n] (at ``q``'s state)."""
+        return self.mixer.apply(q.mixer, chosen, q.state)
+
+
+class TeamDQN:
+    """Value decomposition: ``n`` agents' Q-networks whose values at their actions a ``mixer`` combines into
+    the team's, Q_tot(s, a) = mixer(Q_1(o_1, a_1), ..., Q_n(o_n, a_n); s), fitted to the team reward by one
+    TD loss on one team replay (VDN: a sum, Sunehag et al. 2018; QMIX: a monotonic network of the state,
+    Rashid et al. 2018).
+
+    Each agent has its own parameters (no sharing, as ``IndependentDQN``), acts epsilon-greedily on its own
+    Q-values and greedily by their argmax: decentralised, which is the team's argmax exactly when the mixer
+    is monotonic in every agent's value (dQ_tot/dQ_i >= 0; both VDN's and QMIX's are). For the same reason the
+    target is r + discount * mixer^target(max_a Q_i^target(o'_i, a); s') (Double DQN, ``cfg.double_dqn``: at
+    the online agents' argmax), the bootstrap through time limits and n-step returns as ``dqn_target``'s.
+    One optimizer over all parameters; the policy (what a greedy test runs, and kept as the best params) is
+    the agents' networks only. The row is the team's: obs ([obs_dim], or [n, obs_dim] with one row per
+    agent), action int32[n], the team reward. ``dqn.n_step_cut_greedy`` is not supported.
+
+    Args as ``IndependentDQN``'s; ``mixer``: see ``TeamNetwork``.
+    """
+
+    def __init__(self, obs_shape: int | tuple, n_actions: int, n: int, cfg: DQNConfig, mixer: nn.Module,
+                 row_fn: Callable = default_row, obs_blocks: tuple[int, ...] | None = None):
+        if cfg.n_step > 1 and cfg.n_step_cut_greedy:
+            raise ConfigError("dqn.n_step_cut_greedy is not supported by value decomposition (vdn, qmix); "
+                              "dqn.n_step_cut_exploring is")
+        self.per_agent = agent_axis(obs_shape, n)
+        obs_dim = obs_shape if isinstance(obs_shape, int) else int(obs_shape[-1])
+        self.cfg, self.n, self.n_actions, self.obs_dim, self.row_fn = cfg, n, n_actions, obs_dim, row_fn
+        agent = MLP(tuple(cfg.hidden), n_actions, tuple(obs_blocks) if cfg.one_hot_input and obs_blocks else None)
+        self.network = TeamNetwork(agent, mixer, n, self.per_agent)
+        self.dqn = DQN(obs_dim, n_actions, cfg, self._target, obs_blocks, action_value=self._team_value,
+                       network=self.network, input_shape=(n, obs_dim) if self.per_agent else (obs_dim,))
+        self.action_shape = (n,)
+        self.act_noise = {"explore": (n,), "action": (n,)}
+        self.update_noise = {"sample": (cfg.batch_size,)}
+
+    def _team_value(self, q: TeamQ, action: jax.Array) -> jax.Array:
+        """float[B]: Q_tot at the taken joint actions int[B, n]."""
+        chex.assert_rank([q.agents, action], [3, 2])
+        return self.network.mix(q, jnp.take_along_axis(q.agents, action[..., None].astype(jnp.int32), -1)[..., 0])
+
+    def _target(self, batch, q_t_target: TeamQ, q_t_online: TeamQ) -> jax.Array:
+        if self.cfg.double_dqn:
+            a_t = jnp.argmax(q_t_online.agents, -1)
+            best = jnp.take_along_axis(q_t_target.agents, a_t[..., None], -1)[..., 0]
+        else:
+            best = q_t_target.agents.max(-1)
+        return batch["reward"] + batch["discount"] * self.network.mix(q_t_target, best)
+
+    def _row(self, transition: dict, params=None) -> dict:
+        row = self.row_fn(transition)
+        if self.cfg.n_step > 1 and self.cfg.n_step_cut_exploring:  # the joint action was the greedy one
+            greedy = transition["action"] if params is None else \
+                self.greedy_act(self.policy_of(params), transition["obs"], transition["carry"])[0]
+            row["greedy"] = jnp.all(greedy == transition["action"])
+        return row
+
+    def init(self, key, transition: dict):
+        return self.dqn.init(key, self._row(transition))
+
+    def init_carry(self):
+        return jnp.zeros((), jnp.int32)
+
+    def act(self, state, obs, carry, noise, step):
+        eps = linear_epsilon(self.cfg, step)
+        pick = lambda q_i, ue, ua: epsilon_greedy(q_i, eps, ue, ua)
+        q = self.network.agent_q(self.policy(state), obs)
+        return jax.vmap(pick)(q, noise["explore"], noise["action"]), carry
+
+    def observe(self, state, transition):
+        return self.dqn.add(state, self._row(transition, state.params))
+
+    def update(self, state, noise):
+        return self.dqn.update(state, noise["sample"])
+
+    @staticmethod
+    def policy_of(params: dict):
+        return params["agents"]
+
+    def policy(self, state):
+        return self.policy_of(state.params)
+
+    def greedy_act(self, params, obs, carry):
+        return jnp.argmax(self.network.agent_q(params, obs), axis=-1).astype(jnp.int32), carry

@@ -156,13 +156,19 @@ class DQN:
     ``cfg.gamma``; its reward is stored times ``cfg.reward_scale``. The learning rate follows
     ``cfg.lr_schedule`` over gradient updates.
 
+    ``network`` (optional) replaces the MLP: any object with flax's ``init(key, x)`` / ``apply(params, x)``,
+    initialised at zeros of ``input_shape`` (default [obs_dim]); its output at a batch of observations
+    may be any pytree the learner's ``target_fn`` and ``action_value`` read (``learners.TeamDQN``: the
+    agents' Q-values and what their mixer needs there).
+
     Observations (``obs``, ``next_obs``) are stored compactly: with ``obs_blocks`` (the widths of the
     one-hot blocks the env's features are made of, e.g. ``env.obs_blocks``) as one small integer per
     block (``replay.OneHotCodec``), rebuilt exactly inside the update; without, as uint8 (binary features).
     """
 
     def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, target_fn: TargetFn,
-                 obs_blocks: tuple[int, ...] | None = None, action_value: Callable | None = None):
+                 obs_blocks: tuple[int, ...] | None = None, action_value: Callable | None = None,
+                 network=None, input_shape: tuple[int, ...] | None = None):
         self.cfg, self.obs_dim, self.n_actions = cfg, obs_dim, n_actions
         self.target_fn = target_fn
         self.action_value = action_value or taken_value
@@ -171,14 +177,16 @@ class DQN:
             raise ValueError(f"obs_blocks {self.codec.sizes} sum to {self.codec.dim}, not obs_dim={obs_dim}")
         if cfg.one_hot_input and self.codec is None:
             raise ValueError("dqn.one_hot_input needs the observation's one-hot blocks (obs_blocks)")
-        self.network = MLP(tuple(cfg.hidden), n_actions, self.codec.sizes if cfg.one_hot_input else None)
+        self.network = network if network is not None else \
+            MLP(tuple(cfg.hidden), n_actions, self.codec.sizes if cfg.one_hot_input else None)
+        self.input_shape = tuple(input_shape or (obs_dim,))
         self.optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(learning_rate(cfg)))
 
     def q_values(self, params, obs: jax.Array) -> jax.Array:
         return self.network.apply(params, obs.astype(jnp.float32))
 
     def init(self, key: jax.Array, example_row: dict) -> DQNState:
-        params = self.network.init(key, jnp.zeros((self.obs_dim,), jnp.float32))
+        params = self.network.init(key, jnp.zeros(self.input_shape, jnp.float32))
         row = self.compact(example_row)
         return DQNState(params=params, target_params=params, opt_state=self.optimizer.init(params),
                         replay=rb.init(row, self.cfg.buffer_capacity), updates=jnp.zeros((), jnp.int32))
