@@ -75,8 +75,10 @@ class OneHotCodec:
         parts = []
         for a, b, size in self._runs:
             run = codes[..., a:b, None] == (np.ones(1) if size == 1 else np.arange(size))  # [..., blocks, size]
-            parts.append(run.reshape(*codes.shape[:-1], (b - a) * size))
-        return jnp.concatenate(parts, -1).astype(jnp.float32)
+            # each run cast on its own: a cast after the concatenation fuses worse (two_rooms' observation
+            # measured 10-40% slower that way)
+            parts.append(run.astype(jnp.float32).reshape(*codes.shape[:-1], (b - a) * size))
+        return jnp.concatenate(parts, -1)
 
 
 @struct.dataclass

@@ -219,7 +219,6 @@ class USAREnv:
         victim_at = np.full(layout.shape, -1, np.int32)
         victim_at[tuple(layout.victim_pos.T)] = np.arange(self.n_fixed)
         self._victim_at = victim_at
-        self._region_masks = self.graph.cell_region[None] == np.arange(self.graph.n_regions)[:, None, None]
         self.seen_at_reset = np.asarray(self._sees(jnp.asarray(layout.agent_start, jnp.int32)))
         self._encoder = Encoder(self)
         blocks = self._encoder.full_blocks if self.observation == "full" else self._encoder.view_blocks
@@ -240,7 +239,9 @@ class USAREnv:
     def _sees(self, agent_pos: jax.Array) -> jax.Array:
         """bool[H, W]: the cells some agent at ``agent_pos`` sees (its region, within ``view_radius``)."""
         region = jnp.asarray(self.graph.cell_region)[agent_pos[:, 0], agent_pos[:, 1]]
-        sees = jnp.asarray(self._region_masks)[region]  # [n_agents, H, W]
+        # a compare with the static region grid, which fuses into the caller's OR (a gather of [H, W] masks
+        # does not, and cost two_rooms ~10% of its env-steps/s)
+        sees = jnp.asarray(self.graph.cell_region)[None] == region[:, None, None]  # [n_agents, H, W]
         if self.view_radius is not None:
             near_row = jnp.abs(jnp.arange(self.height)[None, :] - agent_pos[:, :1]) <= self.view_radius
             near_col = jnp.abs(jnp.arange(self.width)[None, :] - agent_pos[:, 1:]) <= self.view_radius
