@@ -68,16 +68,25 @@ class OneHotCodec:
             codes.append(block[..., 0] if size == 1 else jnp.where(block.any(-1), jnp.argmax(block, -1), size))
         return jnp.concatenate(codes, -1)[..., self._order].astype(self.dtype)
 
-    def decode(self, codes: jax.Array) -> jax.Array:
-        codes = jnp.asarray(codes).astype(jnp.int32)
-        if len(self._runs) > MAX_DECODE_RUNS:  # many short runs: one gather keeps the program small
-            return (codes[..., self._block_of] == self._place).astype(jnp.float32)
-        parts = []
-        for a, b, size in self._runs:
-            run = codes[..., a:b, None] == (np.ones(1) if size == 1 else np.arange(size))  # [..., blocks, size]
-            # each run cast on its own: a cast after the concatenation fuses worse (two_rooms' observation
-            # measured 10-40% slower that way)
-            parts.append(run.astype(jnp.float32).reshape(*codes.shape[:-1], (b - a) * size))
+    def decode(self, codes: jax.Array | list) -> jax.Array:
+        """float32[..., dim] of codes [..., n_blocks], or of a list of code arrays that concatenate to them
+        (each then decoded where it lies: XLA fuses a concatenation of integers before the compares poorly)."""
+        segments = [jnp.asarray(c).astype(jnp.int32) for c in (codes if isinstance(codes, (list, tuple)) else [codes])]
+        if sum(c.shape[-1] for c in segments) != len(self.sizes):
+            raise ValueError(f"{sum(c.shape[-1] for c in segments)} codes for {len(self.sizes)} blocks")
+        if len(self._runs) + len(segments) > MAX_DECODE_RUNS:  # many short runs: one gather keeps the program small
+            whole = jnp.concatenate(segments, -1)
+            return (whole[..., self._block_of] == self._place).astype(jnp.float32)
+        parts, start = [], 0
+        for seg in segments:
+            end = start + seg.shape[-1]
+            for a, b, size in self._runs:  # the part of each run of equal-width blocks in this segment
+                lo, hi = max(a, start), min(b, end)
+                if lo < hi:
+                    run = seg[..., lo - start:hi - start, None] == (np.ones(1) if size == 1 else np.arange(size))
+                    # each run cast on its own: a cast after the concatenation fuses worse
+                    parts.append(run.astype(jnp.float32).reshape(*seg.shape[:-1], (hi - lo) * size))
+            start = end
         return jnp.concatenate(parts, -1)
 
 

@@ -102,11 +102,15 @@ class Encoder:
     # -- full ---------------------------------------------------------------------------------------
     def full_codes(self, state) -> jax.Array:
         """int32[len(full_blocks)]: the ``full`` observation, one code per block."""
+        return jnp.concatenate(self.full_code_parts(state))
+
+    def full_code_parts(self, state) -> list[jax.Array]:
+        """``full_codes`` in pieces, in order (``OneHotCodec.decode`` takes them as they are)."""
         env = self.env
-        parts = [state.agent_pos, state.agent_dir[:, None]]
-        parts = [jnp.concatenate(parts, 1).ravel(), state.triaged]
+        parts = [p for i in range(env.n_agents) for p in (state.agent_pos[i], state.agent_dir[i:i + 1])]
+        parts.append(state.triaged)
         if env.part1:
-            return jnp.concatenate(parts).astype(jnp.int32)
+            return [p.astype(jnp.int32) for p in parts]
         if len(self.rubble_cells):
             parts.append(state.rubble[tuple(self.rubble_cells.T)])
         if env.n_drawn:
@@ -119,7 +123,7 @@ class Encoder:
         parts.append(time_bits(state.t, self.time_bits))
         if len(self.unseen_at_reset):
             parts.append(state.seen[tuple(self.unseen_at_reset.T)])
-        return jnp.concatenate([p.astype(jnp.int32) for p in parts])
+        return [p.astype(jnp.int32) for p in parts]
 
     # -- view ---------------------------------------------------------------------------------------
     def _victim_codes(self, state) -> jax.Array:

@@ -303,10 +303,12 @@ class USAREnv:
         state = self.complete(state)
         enc = self._encoder
         if self.observation == "full":
-            codes = enc.full_codes(state)
+            codes = enc.full_code_parts(state)  # decoded piece by piece, or concatenated
         else:
-            codes = enc.view_codes(state, self._victim_cells(state)[1])
-        return self.obs_codec.decode(codes) if self.encoding == "one_hot" else codes.astype(self.obs_dtype)
+            codes = [enc.view_codes(state, self._victim_cells(state)[1])]
+        if self.encoding == "one_hot":
+            return self.obs_codec.decode(codes)
+        return jnp.concatenate(codes, -1).astype(self.obs_dtype)
 
     def step(self, key: jax.Array, state: EnvState, actions: jax.Array):
         """One joint step. Returns (obs, state, reward float32, done bool, info).
