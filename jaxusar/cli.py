@@ -386,6 +386,53 @@ def reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- benchmark ----------------------------------------------------------------------------------
+def add_benchmark(subparsers) -> None:
+    p = subparsers.add_parser(
+        "benchmark", help="sample-efficiency benchmark: every algorithm on a versioned task suite, rliable statistics",
+        description="Train every algorithm on every task of the suite (versioned ids such as two_rooms-v1; --list "
+                    "shows them), N trials each, all trainers side by side, the longest first; score each trial "
+                    "against the task's reference (exact optimum, lower bound, or clairvoyant bound); write "
+                    "DIR/leaderboard.md, DIR/tasks.md, DIR/results.json and four figures. Interrupted runs resume.")
+    p.add_argument("--tasks", nargs="+", default=None, metavar="ID", help="task ids (default: every task)")
+    p.add_argument("--algorithms", nargs="+", default=None, metavar="ALGO",
+                   help="hierarchical, doc, iql, vdn, qmix (default: all)")
+    p.add_argument("--trials", type=int, default=8, help="independent seeds per task and algorithm (default 8)")
+    p.add_argument("--quick", action="store_true", help="reduced budgets: the whole suite in minutes, for a first look")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/benchmark)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
+                   help="override a setting of every algorithm or of one (iql.train.episodes=100); repeatable")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="trainers run side by side (default: one per CPU core)")
+    p.add_argument("--list", action="store_true", help="list the tasks and exit")
+    add_run_arguments(p)
+    p.set_defaults(run=benchmark)
+
+
+def benchmark(args: argparse.Namespace) -> int:
+    from jaxusar import config
+    from jaxusar.core.checkpoint import CheckpointError
+    from jaxusar.envs import LayoutError
+    from jaxusar.experiments import benchmark as experiment
+    from jaxusar.experiments.suite import TASKS
+
+    if args.list:
+        width = max(map(len, TASKS))
+        for task_id, task in TASKS.items():
+            print(f"{task_id:<{width}}  {task.describe()}")
+        return 0
+    check_run_arguments(args)
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        experiment.run(args.tasks, args.algorithms, args.trials, args.out, quick=args.quick, sets=args.sets,
+                       force=args.force, quiet=args.quiet, checkpoint_every=args.checkpoint_every,
+                       workers=args.workers, command=args.command_line)
+    except (config.ConfigError, LayoutError, FileExistsError, CheckpointError) as err:
+        raise UsageError(str(err)) from None
+    return 0
+
+
 # -- maps ---------------------------------------------------------------------------------------
 def add_maps(subparsers) -> None:
     p = subparsers.add_parser("maps", help="generate rooms-and-corridors maps; segment a layout into regions",
@@ -522,7 +569,7 @@ def maps_segment(args: argparse.Namespace) -> int:
 
 
 # -- entry point ----------------------------------------------------------------------------------
-COMMANDS = (add_demo, add_train, add_reproduce, add_maps)
+COMMANDS = (add_demo, add_train, add_reproduce, add_benchmark, add_maps)
 INTERRUPTED = 130  # the exit status of a command ended by Ctrl-C (128 + SIGINT), as shells report it
 
 

@@ -89,7 +89,7 @@ class TrialState:
     episodes: jax.Array       # training episodes finished
     ep_return: jax.Array
     ep_length: jax.Array
-    env_steps: jax.Array      # env steps taken until `episodes` reached the budget
+    env_steps: jax.Array      # primitive actions of all agents in training episodes until the budget was reached
     pending_test: jax.Array   # test index due at the end of this iteration, or NO_TEST
     snaps: Snapshots
     train_return: jax.Array   # float32[episodes + 1]; the last slot is a write-off
@@ -190,6 +190,9 @@ class Trainer:
         if any(self.iters * self.gradient_steps * math.prod(shape) >= 2 ** 32 for shape in learner.update_noise.values()):
             raise ConfigError(f"a chunk of {self.chunk_steps} steps draws 2^32 or more update numbers per trial; "
                               "lower train.chunk_steps")
+        # env steps are counted as primitive actions of all agents: an env of ``n_agents`` (default 1) whose
+        # info["steps"] (default 1) says how many primitive steps a call took (the coordinator's decisions)
+        self.agents = int(getattr(env, "n_agents", 1))
         self.has_coverage = hasattr(env, "coverage")
         self.refocuses = self.has_coverage and hasattr(env, "refocus")  # takes each test's per-state verdict
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
@@ -294,7 +297,7 @@ class Trainer:
             env_state=pick(state0, env_state), obs=pick(obs0, next_obs), actor=pick(lrn.init_carry(), actor),
             learner=learner, episodes=episodes,
             ep_return=jnp.where(done, 0.0, ep_return), ep_length=jnp.where(done, 0, ep_length),
-            env_steps=s.env_steps + live,
+            env_steps=s.env_steps + live * _steps_of(info) * self.agents,
             pending_test=jnp.where(test_due, episodes // cfg.test_every - 1, s.pending_test),
             train_return=s.train_return.at[slot].set(ep_return),
             train_length=s.train_length.at[slot].set(ep_length),

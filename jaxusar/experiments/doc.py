@@ -72,7 +72,7 @@ class Experiment:
                         horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env),
                         reference=self.reference["reference"])
         keep = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal", "episodes_to_solved",
-                "best_test_return", "best_test_steps", "optimality_gap", "env_steps_per_trial", "seconds")
+                "best_test_return", "best_test_steps", "optimality_gap", "env_steps", "seconds")
         return {
             "algorithm": cfg.algo, "trials": per_k[ks[0]]["trials"], "options": list(ks),
             **{k: v for k, v in per_k[ks[0]].items() if k in ("optimal_team_steps", "reference", "team_lower_bound")},

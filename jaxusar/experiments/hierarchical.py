@@ -356,6 +356,10 @@ class Experiment:
             "options": list(b["options"].names), "tasks": [t.name for t in tasks],
             **reference_metrics(b["reference"], co), "optimal_slack": cfg.train.optimal_slack,
             "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
+            # primitive actions of all agents in training: every sub-policy's episodes, then the coordinator's
+            "env_steps": (np.asarray(sub["env_steps"]).sum(0) + np.asarray(co["env_steps"])).tolist(),
+            "env_steps_by_stage": {"subpolicies": np.asarray(sub["env_steps"]).sum(0).tolist(),
+                                   "coordinator": np.asarray(co["env_steps"]).tolist()},
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }

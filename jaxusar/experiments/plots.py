@@ -143,3 +143,95 @@ def training_figure(results: dict | list[tuple[str, dict]], path: str | Path, ti
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# -- the benchmark's figures (rliable style) -----------------------------------------------------------
+ALGO_COLORS = {"hierarchical": "tab:green", "doc": "tab:purple", "iql": "tab:blue", "vdn": "tab:orange",
+               "qmix": "tab:red", "scripted": "tab:gray"}
+
+
+def _algo_color(name: str, i: int) -> str:
+    return ALGO_COLORS.get(name, f"C{i}")
+
+
+def _save(fig, path: Path) -> Path:
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def benchmark_figures(results: dict, out: Path) -> list[Path]:
+    """aggregates.png (IQM, median, mean, optimality gap with 95% intervals), profile.png (performance
+    profiles), improvement.png (probability of improvement, every pair), sample_efficiency.png (IQM score
+    vs env steps) from ``jaxusar benchmark``'s results.json dict. Each algorithm keeps one colour throughout."""
+    from jaxusar.experiments import stats
+
+    algos_ = results["algorithms"]
+    names = sorted(algos_, key=lambda a: algos_[a]["aggregates"]["iqm"][0])  # best on top
+    colors = {a: _algo_color(a, i) for i, a in enumerate(algos_)}
+    finals = {a: np.array([results["runs"][f"{t}/{a}"]["final_score"] for t in algos_[a]["tasks"]]).T for a in names}
+    paths = []
+
+    fig, axes = plt.subplots(1, 4, figsize=(12, 0.5 + 0.45 * len(names)), sharey=True)
+    for ax, metric in zip(axes, stats.AGGREGATES):
+        for y, a in enumerate(names):
+            point, low, high = algos_[a]["aggregates"][metric]
+            ax.barh(y, high - low, left=low, height=0.6, color=colors[a], alpha=0.75)
+            ax.plot([point, point], [y - 0.3, y + 0.3], color="black", lw=1.5)
+        ax.set_title(metric.replace("_", " ").replace("iqm", "IQM"))
+        ax.set_xlabel("normalized score")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(range(len(names)), [f"{a} ({len(algos_[a]['tasks'])} tasks)" for a in names])
+    fig.suptitle("aggregate final scores, 95% stratified bootstrap intervals (bar) and point estimate (line)")
+    paths.append(_save(fig, out / "aggregates.png"))
+
+    taus = np.linspace(0, 1.05, 64)
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for a in reversed(names):
+        p = stats.performance_profile(finals[a], taus)
+        ax.plot(taus, p.point, color=colors[a], label=a, lw=1.8)
+        ax.fill_between(taus, p.low, p.high, color=colors[a], alpha=0.2, lw=0)
+    ax.set_xlabel("normalized score tau")
+    ax.set_ylabel("fraction of runs with score > tau")
+    ax.set_title("performance profiles (95% bands)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=9, frameon=False)
+    paths.append(_save(fig, out / "profile.png"))
+
+    common = [t for t in results["tasks"] if all(t in algos_[a]["tasks"] for a in names)]
+    if len(names) > 1 and common:
+        arrays = {a: np.array([results["runs"][f"{t}/{a}"]["final_score"] for t in common]).T
+                  for a in reversed(names)}
+        pairs = stats.probabilities_of_improvement(arrays)
+        fig, ax = plt.subplots(figsize=(7, 0.6 + 0.38 * len(pairs)))
+        for y, ((x_name, y_name), e) in enumerate(pairs.items()):
+            ax.barh(y, e.high - e.low, left=e.low, height=0.6, color=colors[x_name], alpha=0.75)
+            ax.plot([e.point, e.point], [y - 0.3, y + 0.3], color="black", lw=1.5)
+        ax.set_yticks(range(len(pairs)), [f"P({x} > {y})" for x, y in pairs])
+        ax.axvline(0.5, color="grey", ls=":", lw=1)
+        ax.set_xlim(0, 1)
+        ax.set_xlabel("probability of improvement")
+        ax.set_title(f"on the {len(common)} tasks every algorithm ran (95% intervals)")
+        ax.grid(axis="x", alpha=0.3)
+        paths.append(_save(fig, out / "improvement.png"))
+
+    steps = [s for r in results["runs"].values() for trial in r["curve_env_steps"] for s in trial]
+    grid = np.geomspace(max(1.0, min(s for s in steps if s > 0)), max(steps), 40)
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    from jaxusar.experiments.benchmark import curve_on
+
+    for a in reversed(names):
+        curves = np.stack([curve_on(grid, results["runs"][f"{t}/{a}"]["curve_env_steps"],
+                                    results["runs"][f"{t}/{a}"]["curve_score"]) for t in algos_[a]["tasks"]], 1)
+        e = stats.iqm_curve(curves)
+        ax.plot(grid, e.point, color=colors[a], label=a, lw=1.8)
+        ax.fill_between(grid, e.low, e.high, color=colors[a], alpha=0.2, lw=0)
+    ax.set_xscale("log")
+    ax.set_xlabel("env steps (primitive actions of all agents, training)")
+    ax.set_ylabel("IQM of best greedy test score so far")
+    ax.set_ylim(0, 1.05)
+    ax.set_title("sample efficiency (95% bands)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=9, frameon=False)
+    paths.append(_save(fig, out / "sample_efficiency.png"))
+    return paths

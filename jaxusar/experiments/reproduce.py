@@ -5,7 +5,8 @@ call per trainer, all trainers side by side (one per CPU core), with resumable c
 
     results.json          per algorithm (and per K): episodes_to_optimal per trial (null = never), best,
                           median, IQM with its 95% bootstrap interval, fraction of trials optimal, episodes
-                          to the first test solved at any length, each trial's best test steps, compile and
+                          to the first test solved at any length, each trial's best test steps, its env
+                          steps (primitive actions of all agents in training), compile and
                           run seconds per trainer; seconds_by_algorithm (setup, compile, run, write); the
                           planner's optimum; this invocation's wall seconds; versions, config hashes, the
                           machine, workers, devices and processes
@@ -187,7 +188,7 @@ def _row(metrics: dict, budget: int, seconds: dict, solved: list, best_steps: li
     ``optimality_gap``: per trial, its shortest solving test / the lower bound (None = never solved)."""
     return {**{k: metrics[k] for k in STATS}, "budget_episodes": budget, "episodes_to_solved": solved,
             "best_test_steps": [int(x) for x in best_steps], "optimality_gap": metrics["optimality_gap"],
-            "seconds": seconds}
+            "env_steps": metrics["env_steps"], "seconds": seconds}
 
 
 def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:

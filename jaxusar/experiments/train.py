@@ -11,7 +11,8 @@ An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage`
 Output folder of a flat learner (default ``runs/<algo>-<map>``, ``default_out``)::
 
     metrics.json        algorithm, trials, episodes_to_optimal (list over trials, null = never),
-                        summary statistics, wall_seconds (compile included), resolved config, versions
+                        summary statistics, env_steps (per trial: primitive actions of all agents in
+                        training episodes), wall_seconds (compile included), resolved config, versions
     curves.csv          trial, kind (train|test), episode, return, steps, optimal
     params/trial_K.msgpack   best test params of trial K (flax.serialization)
     curves.png          train and test steps and rewards vs episodes, band over trials (paper Fig. 6 style)
@@ -195,7 +196,7 @@ def flat_metrics(cfg: ExperimentConfig, results: dict, reference: dict, outcome:
         "episodes_to_solved": results["episodes_to_solved"],
         **reference_metrics(reference, results), "optimal_slack": cfg.train.optimal_slack,
         "best_test_return": results["best_return"].tolist(), "best_test_steps": results["best_length"].tolist(),
-        "env_steps_per_trial": results["env_steps"].tolist(), "seconds": stage_seconds(outcome),
+        "env_steps": results["env_steps"].tolist(), "seconds": stage_seconds(outcome),
         "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
     }
 

@@ -5,6 +5,7 @@ of a fixed sample, the best a team could do knowing where the victims are).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -34,7 +35,26 @@ def in_reach(env: USAREnv) -> bool:
     return not env.n_drawn and joint_states_bound(env) <= limit
 
 
+_REFERENCES: dict[tuple, dict] = {}  # team_reference's answers in this process (a benchmark plans a map per run)
+
+
+def _env_key(env: USAREnv, *args) -> tuple:
+    """What a reference depends on: the env's settings (its repr) and every static array of its layout."""
+    arrays = (env.blocked, env.victim_pos, env.victim_kind, env.roles, env.layout.agent_start, env.layout.rubble,
+              env.layout.random_cells, env.graph.cell_region)
+    return (repr(env), *(np.asarray(a).tobytes() + str(np.shape(a)).encode() for a in arrays), *args)
+
+
 def team_reference(env: USAREnv, max_states: int = 20_000_000) -> dict:
+    """``_team_reference``, remembered per env (its settings and static arrays) in this process: the
+    searches take seconds to minutes, and every algorithm of a benchmark or a reproduction asks for them."""
+    key = _env_key(env, max_states)
+    if key not in _REFERENCES:
+        _REFERENCES[key] = _team_reference(env, max_states)
+    return copy.deepcopy(_REFERENCES[key])
+
+
+def _team_reference(env: USAREnv, max_states: int = 20_000_000) -> dict:
     """What teams on ``env`` are measured against.
 
     Fixed victims: ``steps``, the exact optimum where the joint search is in reach (``in_reach``;
@@ -92,6 +112,15 @@ def fixed_victims(env: USAREnv, victim_pos) -> USAREnv:
 
 def clairvoyant_reference(env: USAREnv, n_draws: int = 32, seed: int = 0,
                           max_states: int = CLAIRVOYANT_MAX_STATES) -> dict:
+    """``_clairvoyant_reference``, remembered per env and arguments in this process (as ``team_reference``)."""
+    key = _env_key(env, "clairvoyant", n_draws, seed, max_states)
+    if key not in _REFERENCES:
+        _REFERENCES[key] = _clairvoyant_reference(env, n_draws, seed, max_states)
+    return copy.deepcopy(_REFERENCES[key])
+
+
+def _clairvoyant_reference(env: USAREnv, n_draws: int = 32, seed: int = 0,
+                           max_states: int = CLAIRVOYANT_MAX_STATES) -> dict:
     """The clairvoyant reference of a map whose victims are drawn at reset: over a fixed sample of draws, the
     mean of the best undiscounted return a team could get knowing where the victims are.
 

@@ -1,0 +1,399 @@
+"""``jaxusar benchmark``: every algorithm on every task of the suite, scored and aggregated as rliable does.
+
+Each (task, algorithm) pair is the algorithm's own experiment (``jaxusar train``'s, same defaults and map
+settings) with the task's observation and horizon, N trials. All trainers of all pairs run side by side in
+one ``Runner`` (one per CPU core, the longest first, with checkpoints: an interrupted benchmark resumes
+where it stopped), then each trial is scored:
+
+* **score** of a greedy team episode: on a task with fixed victims, its return rate over the reference's,
+  ``(R / R*) * min(1, T* / T)`` (R: return, T: steps, the horizon if it did not finish; R*, T*: the exact
+  optimum's, or the lower bound's steps where the joint search is out of reach): 1 exactly at the optimum,
+  ``T*/T`` for a team that saves everyone in T steps. With victims drawn at reset: ``R / R*`` with R* the
+  clairvoyant optimum (or bound) of the same draw's mean, ``planning.clairvoyant_reference``: a bound no
+  policy that must search can reach.
+* a trial's **final score**: its kept (best-tested) params' greedy episodes on the task's test draws (the
+  one fixed start, or ``task.test_draws`` draws from ``task.draw_seed``): mean R over mean R* there.
+* **env steps**: primitive actions of all agents in training episodes (the paper's method: every
+  sub-policy's and the coordinator's), ``core.Trainer``'s count; a trial's curve is its best test score so
+  far against the env steps it had taken at that test.
+
+Writes ``out`` (default results/benchmark)::
+
+    results.json        tasks (ids, references), per pair: per-trial final scores, env steps, env steps to
+                        90% of the reference, curves; aggregates with intervals; what could not run and why
+    leaderboard.md      one row per algorithm: IQM, median, mean, optimality gap [95% CI], env steps to 90%
+    tasks.md            per task: each algorithm's final scores (median, best, trials at >= 0.9)
+    aggregates.png  profile.png  improvement.png  sample_efficiency.png
+    runs/<task>/<algo>/ each pair's own results folder (metrics.json, curves.csv, params/, figures)
+    maps/               the generated tasks' layouts
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shlex
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxusar import algos, config, envs, planning
+from jaxusar.experiments import reproduce, stats, train
+from jaxusar.experiments.runner import Runner, gather
+from jaxusar.experiments.suite import Task, materialize, resolve
+from jaxusar.experiments.usage import Usage
+
+ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix")
+# Option-critic runs one K here: 2, the only one that learned in the paper (Table II, Fig. 5).
+SETTINGS = {"doc": ["doc.options=[2]"]}
+# --quick: reduced budgets, the same pipeline, every task and algorithm within 15 minutes on a 2-core CPU
+# (docs/benchmark.md); the paper's method's sub-policies on office take most of it.
+QUICK = {"hierarchical": ["train.episodes=40", "hierarchical.coordinator.episodes=30"],
+         **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}
+TARGET = 0.9  # "env steps to 90% of the reference"
+CURVE_POINTS = 40
+
+
+# -- scores ---------------------------------------------------------------------------------------------
+def episode_scores(returns, steps, ref_return, ref_steps=None) -> np.ndarray:
+    """Scores of greedy episodes (module doc): ``(R / R*) * min(1, T* / T)``, or ``R / R*`` without ``ref_steps``."""
+    score = np.asarray(returns, float) / float(ref_return)
+    if ref_steps is None:
+        return score
+    return score * np.minimum(1.0, float(ref_steps) / np.maximum(np.asarray(steps, float), 1.0))
+
+
+def best_so_far(scores: np.ndarray) -> np.ndarray:
+    """[trials, tests]: the best score up to each test (a test not run, nan, keeps the best before it; 0 first)."""
+    return np.maximum.accumulate(np.nan_to_num(np.asarray(scores, float), nan=0.0), axis=-1)
+
+
+def steps_to(curve_steps: np.ndarray, curve_scores: np.ndarray, target: float = TARGET) -> list:
+    """Per trial: env steps at the first test whose score reached ``target`` (None: never)."""
+    out = []
+    for x, y in zip(curve_steps, curve_scores):
+        hit = np.flatnonzero(np.asarray(y) >= target - 1e-9)
+        out.append(int(x[hit[0]]) if hit.size else None)
+    return out
+
+
+def curve_on(grid: np.ndarray, curve_steps: np.ndarray, curve_scores: np.ndarray) -> np.ndarray:
+    """[trials, len(grid)]: each trial's best score by ``grid`` env steps (0 before its first test)."""
+    out = np.zeros((len(curve_steps), len(grid)))
+    for k, (x, y) in enumerate(zip(curve_steps, curve_scores)):
+        idx = np.searchsorted(np.asarray(x), grid, side="right") - 1
+        out[k] = np.where(idx >= 0, np.asarray(y)[np.maximum(idx, 0)], 0.0)
+    return out
+
+
+# -- a task's references ---------------------------------------------------------------------------------
+def reference(task: Task, env) -> dict:
+    """What ``task`` is scored against: ``return`` (R*: mean over the test draws), ``steps`` (T*, fixed
+    victims only, else None) and ``kind`` (optimum, lower bound, clairvoyant optimum or bound)."""
+    if env.n_drawn:
+        ref = planning.clairvoyant_reference(env, n_draws=task.test_draws, seed=task.draw_seed)
+        return {"return": float(ref["return"]), "steps": None, "kind": ref["reference"], "draws": task.test_draws}
+    ref = planning.team_reference(env)
+    every = float(env.triage_reward * np.sum(env.victim_kind == 0) + env.critical_reward * np.sum(env.victim_kind == 1))
+    ret = ref.get("return", every + env.step_penalty * ref["steps"])
+    return {"return": float(ret), "steps": int(ref["steps"]), "kind": ref.get("return_reference", ref["reference"]),
+            "draws": 1}
+
+
+def test_keys(task: Task, env) -> jax.Array:
+    n = task.test_draws if env.n_drawn else 1
+    return jax.random.split(jax.random.PRNGKey(task.draw_seed), n)
+
+
+# -- one (task, algorithm) pair ------------------------------------------------------------------------
+@dataclasses.dataclass
+class Pair:
+    task: Task
+    algo: str
+    cfg: config.ExperimentConfig
+    experiment: object
+    prefix: str  # its stages' names in the shared Runner: "<task id>/<stage>"
+
+    @property
+    def chain(self) -> list:
+        """The stages whose results score it: the experiment's only chain (option-critic runs one K here)."""
+        return self.experiment.chains[0]
+
+
+def unsupported(algo: str, env) -> str | None:
+    """Why ``algo`` cannot run on ``env`` (one line), or None."""
+    if algo == "hierarchical":
+        from jaxusar.experiments import hierarchical
+
+        missing = hierarchical.unsupported_features(env)
+        if missing:
+            return f"the paper's method has no options yet for {', '.join(missing)}"
+    return None
+
+
+def configs(task: Task, map_: str, quick: bool, sets: list[str]) -> dict[str, config.ExperimentConfig]:
+    """Each algorithm's config on ``task``: its defaults and the map's settings, the benchmark's own
+    (SETTINGS), the task's observation and horizon, --quick budgets, then ``sets`` (all or ``algo.``-prefixed)."""
+    out = {}
+    for a in ALGORITHMS:
+        own = [f"env.map={json.dumps(map_)}", f"env.observation={task.observation}", f"env.horizon={task.horizon}",
+               *SETTINGS.get(a, []), *(QUICK[a] if quick else [])]
+        for s in sets:
+            head = s.split(".", 1)[0]
+            if head not in ALGORITHMS:
+                own.append(s)
+            elif head == a:
+                own.append(s.split(".", 1)[1])
+        try:
+            out[a] = config.load(None, own, defaults=algos.defaults(a))
+        except config.ConfigError as err:
+            raise config.ConfigError(f"{task.id}, {a}: {err}") from None
+    return out
+
+
+def evaluate(stage, results: dict, env_params, keys: jax.Array) -> tuple[np.ndarray, np.ndarray]:
+    """(returns, steps) [trials, draws] of each trial's kept params' greedy episodes from ``keys``."""
+    trainer = stage.trainer
+    per_draw = jax.vmap(trainer.greedy_episode, in_axes=(None, 0, None))
+    per_trial = jax.vmap(per_draw, in_axes=(0, None, None if env_params is None else 0))
+    ret, steps, _, _ = jax.jit(per_trial)(results["best_params"], keys, env_params)
+    return np.asarray(ret), np.asarray(steps)
+
+
+def test_curve(stage, results: dict, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(env steps [trials, tests], returns, steps) of a trainer's greedy tests; ``offset`` [trials]: env
+    steps taken before this stage (the sub-policies', for the coordinator)."""
+    ran = ~np.isnan(np.asarray(results["train_return"], float))  # nan: an episode a stopped trial did not run
+    lengths = np.where(ran, np.asarray(results["train_length"], float), 0.0)
+    cum = np.concatenate([np.zeros((len(lengths), 1)), np.cumsum(lengths, 1)], 1) * stage.trainer.agents
+    at = np.asarray(results["test_episode"], int)
+    return offset[:, None] + cum[:, at], np.asarray(results["test_return"], float), \
+        np.asarray(results["test_length"], float)
+
+
+def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array, env) -> dict:
+    """A pair's per-trial final scores, env steps, env steps to TARGET and best-so-far curve."""
+    chain = pair.chain
+    last = chain[-1]
+    results = {s.name: outcomes[f"{pair.prefix}/{s.name}"].results for s in chain}
+    env_params = last.env_params
+    if callable(env_params):
+        env_params = env_params(outcomes[f"{pair.prefix}/{chain[-2].name}"])
+    trials = len(last.keys)
+    offset = np.zeros(trials)
+    for s in chain[:-1]:  # the earlier stages' lanes, summed per trial
+        offset += np.asarray(results[s.name]["env_steps"], float).reshape(trials, -1).sum(1)
+    final = results[last.name]
+    ret, steps = evaluate(last, final, env_params, keys)
+    score = ret.mean(1) / ref["return"] if ref["steps"] is None else \
+        episode_scores(ret[:, 0], steps[:, 0], ref["return"], ref["steps"])
+    x, test_ret, test_len = test_curve(last, final, offset)
+    y = best_so_far(episode_scores(test_ret, test_len, ref["return"], ref["steps"]))
+    env_steps = offset + np.asarray(final["env_steps"], float)
+    return {"final_score": [round(float(v), 6) for v in score], "env_steps": [int(v) for v in env_steps],
+            "env_steps_to_target": steps_to(x, y), "curve_env_steps": x.astype(np.int64).tolist(),
+            "curve_score": np.round(y, 6).tolist(), "final_return": ret.mean(1).round(4).tolist(),
+            "final_steps": steps.mean(1).round(2).tolist()}
+
+
+# -- the command ------------------------------------------------------------------------------------
+def plan(tasks: list[Task], algorithms: list[str], explicit: bool, out: Path, quick: bool, sets: list[str]
+         ) -> tuple[list[tuple[Task, object, dict, dict]], list[dict]]:
+    """Per task: (task, env, the configs of the algorithms that can run it, reference), and the pairs that
+    cannot run (``explicit``: when the user named both the tasks and the algorithms, such a pair is an
+    error instead). Configs are all checked before any map is planned."""
+    cfgs = {task.id: configs(task, materialize(task, out / "maps"), quick, sets) for task in tasks}
+    planned, skipped = [], []
+    for task in tasks:
+        mine = cfgs[task.id]
+        env = envs.make(mine[ALGORITHMS[0]].env.map, **mine[ALGORITHMS[0]].env.overrides())
+        why = {a: unsupported(a, env) for a in algorithms}
+        for a, reason in why.items():
+            if reason and explicit:
+                raise config.ConfigError(f"{a} cannot run {task.id}: {reason}")
+            if reason:
+                skipped.append({"task": task.id, "algorithm": a, "why": reason})
+        planned.append((task, env, {a: mine[a] for a in algorithms if not why[a]}, reference(task, env)))
+    return planned, skipped
+
+
+def check_algorithms(names: list[str] | None) -> list[str]:
+    if not names:
+        return list(ALGORITHMS)
+    bad = [a for a in names if a not in ALGORITHMS]
+    if bad:
+        raise config.ConfigError(f"unknown algorithm(s) {', '.join(map(repr, bad))}; the benchmark runs "
+                                 f"{', '.join(ALGORITHMS)}")
+    if len(set(names)) != len(names):
+        raise config.ConfigError(f"--algorithms names an algorithm twice: {' '.join(names)}")
+    return [a for a in ALGORITHMS if a in names]
+
+
+def suite_progress(chains: list, quiet: bool):
+    """Each trainer's progress lines, and after each trainer ends one line on the whole suite: trainers done,
+    their share of the expected work (``reproduce.expected_cost``, a rough bound) and the time to go at
+    that pace. Called from the Runner's threads."""
+    if quiet:
+        return None
+    cost = {s.name: reproduce.expected_cost(s) for c in chains for s in c}
+    total, done, start, lock = sum(cost.values()), set(), time.perf_counter(), threading.Lock()
+
+    def progress(name: str, p: dict) -> None:
+        train.print_progress(name, p)
+        finished = p["finished"] if "resumed_from" in p else p["episodes_min"] >= p["episodes_total"]
+        with lock:
+            if not finished or name in done:
+                return
+            done.add(name)
+            share = sum(cost[n] for n in done) / total
+            elapsed = time.perf_counter() - start
+            to_go = f"about {elapsed * (1 - share) / share:.0f} s to go" if share < 1 else "all trained"
+            print(f"[benchmark] {len(done)}/{len(cost)} trainers done ({share:.0%} of the expected work), "
+                  f"{elapsed:.0f} s elapsed, {to_go}", flush=True)
+
+    return progress
+
+
+def fingerprint(planned, trials: int) -> str:
+    text = json.dumps({"trials": trials, **{f"{t.id}/{a}": c.hash() for t, _, cfgs, _ in planned
+                                            for a, c in cfgs.items()}}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def run(tasks: list[str] | None = None, algorithms: list[str] | None = None, trials: int = 8,
+        out: str | Path | None = None, quick: bool = False, sets: list[str] | None = None, force: bool = False,
+        quiet: bool = False, checkpoint_every: float = 60.0, workers: int | None = None, devices=None,
+        command: str | None = None) -> dict:
+    """The suite (module doc); returns results.json's dict. Bad input fails before anything compiles."""
+    start, usage, sets = time.perf_counter(), Usage(), list(sets or [])
+    chosen, names = resolve(tasks), check_algorithms(algorithms)
+    out = Path(out or Path("results") / "benchmark")
+    with train.removed_if_refused(out):
+        out = train.prepare_out(out, force, marker="results.json")
+        seed = config.load(None, [s for s in sets if s.split(".", 1)[0] not in ALGORITHMS]).seed
+        keys = train.trial_keys(seed, trials, devices)  # a --trials that cannot split fails first
+        planned, skipped = plan(chosen, names, bool(tasks) and bool(algorithms), out, quick, sets)
+        if {c.seed for _, _, cfgs, _ in planned for c in cfgs.values()} != {seed}:
+            raise config.ConfigError("every algorithm must use the same seed (the trials are the same seeds)")
+        runner = Runner(out / "checkpoints", fingerprint(planned, trials), checkpoint_every, devices)
+        try:
+            pairs = []
+            for task, _, cfgs, _ in planned:
+                for a, cfg in cfgs.items():
+                    folder = out / "runs" / task.id / a
+                    folder.mkdir(parents=True, exist_ok=True)
+                    pairs.append(Pair(task, a, cfg, train.experiment(cfg, keys), f"{task.id}/{a}"))
+            chains = [[dataclasses.replace(s, name=f"{p.prefix}/{s.name}") for s in c]
+                      for p in pairs for c in p.experiment.chains]
+            chains.sort(key=lambda c: -sum(reproduce.expected_cost(s) for s in c))  # longest first
+            runner.progress = suite_progress(chains, quiet)
+            n_workers = train.worker_count(len(chains), workers)
+            if not quiet:
+                print(f"[benchmark] {len(planned)} tasks x {len(names)} algorithms ({len(pairs)} runs, "
+                      f"{len(skipped)} cannot run), {trials} trials each; {len(chains)} trainers, {n_workers} at a "
+                      f"time; writing {out}", flush=True)
+            outcomes = runner.run(chains, workers=n_workers)
+            outcomes = gather(outcomes, {s.name: s for c in chains for s in c})
+            if jax.process_index() != 0:
+                return {}
+            scored = {}
+            for pair in pairs:
+                task, env, _, ref = next(p for p in planned if p[0] is pair.task)
+                own = {name[len(pair.prefix) + 1:]: o for name, o in outcomes.items() if name.startswith(pair.prefix + "/")}
+                metrics = pair.experiment.finish(out / "runs" / task.id / pair.algo, own)
+                (out / "runs" / task.id / pair.algo / "metrics.json").write_text(json.dumps(metrics, indent=2))
+                scored[task.id, pair.algo] = score_pair(pair, outcomes, ref, test_keys(task, env), env)
+        except KeyboardInterrupt:
+            raise runner.interrupted() from None
+    results = summarize(planned, names, scored, skipped, trials, quick)
+    results["command"] = command or shlex.join(["jaxusar", "benchmark", "--trials", str(trials), "--out", str(out)]
+                                               + (["--quick"] if quick else []))
+    results["wall_seconds"] = round(time.perf_counter() - start, 2)
+    results["usage"] = usage.report()
+    results["environment"] = train.environment_info()
+    write(out, results)
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    if not quiet:
+        print("\n" + (out / "leaderboard.md").read_text(), flush=True)
+    print(f"[benchmark] {results['wall_seconds']:.1f}s in all; wrote {out}", flush=True)
+    return results
+
+
+def summarize(planned, names, scored, skipped, trials, quick) -> dict:
+    """results.json: tasks and references, per pair its scores and curves, per algorithm the aggregates."""
+    tasks = {t.id: {"describe": t.describe(), "observation": t.observation, "horizon": t.horizon,
+                    "reference": ref, "config_hashes": {a: c.hash() for a, c in cfgs.items()}}
+             for t, _, cfgs, ref in planned}
+    per_algo = {}
+    for a in names:
+        ids = [t for t in tasks if (t, a) in scored]
+        if not ids:
+            continue
+        final = np.array([scored[t, a]["final_score"] for t in ids]).T  # [runs, tasks]
+        agg = stats.aggregates(final)
+        hits = [s for t in ids for s in scored[t, a]["env_steps_to_target"]]
+        reached = [s for s in hits if s is not None]
+        per_algo[a] = {"tasks": ids, "aggregates": {k: list(v) for k, v in agg.items()},
+                       "runs_reaching_target": f"{len(reached)}/{len(hits)}",
+                       "median_env_steps_to_target": int(np.median(reached)) if reached else None,
+                       "env_steps_median": int(np.median([s for t in ids for s in scored[t, a]["env_steps"]]))}
+    return {"trials": trials, "quick": quick, "target": TARGET, "tasks": tasks, "algorithms": per_algo,
+            "runs": {f"{t}/{a}": v for (t, a), v in scored.items()}, "cannot_run": skipped}
+
+
+def _ci(e) -> str:
+    return f"{e[0]:.3f} [{e[1]:.3f}, {e[2]:.3f}]"
+
+
+def leaderboard(results: dict) -> str:
+    rows = ["| algorithm | tasks | IQM | median | mean | optimality gap | runs at >= 90% | env steps to 90% (median) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    order = sorted(results["algorithms"], key=lambda a: -results["algorithms"][a]["aggregates"]["iqm"][0])
+    for a in order:
+        r = results["algorithms"][a]
+        g = r["aggregates"]
+        steps = "never" if r["median_env_steps_to_target"] is None else f"{r['median_env_steps_to_target']:,}"
+        rows.append(f"| {a} | {len(r['tasks'])} | {_ci(g['iqm'])} | {_ci(g['median'])} | {_ci(g['mean'])} | "
+                    f"{_ci(g['optimality_gap'])} | {r['runs_reaching_target']} | {steps} |")
+    lines = [f"# Leaderboard{' (--quick budgets)' if results['quick'] else ''}", "",
+             f"{results['trials']} trials per task; final normalized scores (1 = the task's reference), aggregated "
+             "over runs x tasks with stratified bootstrap 95% intervals (rliable); env steps = primitive actions "
+             "of all agents in training. Written by `" + results["command"] + "`.", "", *rows]
+    if results["cannot_run"]:
+        lines += ["", "Not run (an algorithm on a task it cannot run): " + "; ".join(
+            f"{c['algorithm']} on {c['task']} ({c['why']})" for c in results["cannot_run"])]
+    return "\n".join(lines) + "\n"
+
+
+def task_tables(results: dict) -> str:
+    lines = ["# Per task", ""]
+    for tid, t in results["tasks"].items():
+        ref = t["reference"]
+        steps = "" if ref["steps"] is None else f", {ref['steps']} steps"
+        lines += [f"## {tid}", "", f"{t['describe']}. Reference: {ref['kind']}, return {ref['return']:g}{steps}"
+                  f" ({ref['draws']} test draw{'s' if ref['draws'] > 1 else ''}).", "",
+                  "| algorithm | median score | best | trials at >= 90% | median env steps |",
+                  "|---|---:|---:|---:|---:|"]
+        for key, r in results["runs"].items():
+            if key.rsplit("/", 1)[0] != tid:
+                continue
+            s = np.asarray(r["final_score"])
+            at = sum(v is not None for v in r["env_steps_to_target"])
+            lines.append(f"| {key.rsplit('/', 1)[1]} | {np.median(s):.3f} | {s.max():.3f} | {at}/{len(s)} | "
+                         f"{int(np.median(r['env_steps'])):,} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write(out: Path, results: dict) -> None:
+    from jaxusar.experiments.plots import benchmark_figures
+
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    (out / "leaderboard.md").write_text(leaderboard(results))
+    (out / "tasks.md").write_text(task_tables(results))
+    benchmark_figures(results, out)

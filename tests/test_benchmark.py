@@ -1,0 +1,106 @@
+"""jaxusar benchmark: the task suite's ids, the scores, env-step accounting and one tiny run end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from jaxusar.cli import main
+from jaxusar.config import ConfigError
+from jaxusar.experiments import benchmark, suite
+
+
+# -- the suite ---------------------------------------------------------------------------------------
+def test_every_task_has_a_versioned_id_and_the_default_is_the_latest_of_each():
+    ids = [t.id for t in suite.resolve(None)]
+    assert "two_rooms-v1" in ids and "minimap-v1" in ids and len(ids) == len({i.rsplit("-v", 1)[0] for i in ids})
+    assert all(suite.TASKS[i].id == i for i in suite.TASKS)
+
+
+@pytest.mark.parametrize("ids, message", [
+    (["two_rooms-v9"], "unknown task version 'two_rooms-v9'; two_rooms has two_rooms-v1"),
+    (["kitchen-v1"], "unknown task 'kitchen-v1'; tasks: two_rooms-v1"),
+    (["two_rooms-v1", "two_rooms-v1"], "--tasks names a task twice"),
+])
+def test_bad_task_ids_are_one_line_errors(ids, message):
+    with pytest.raises(ConfigError, match="^" + message.replace("(", r"\(")):
+        suite.resolve(ids)
+
+
+def test_a_generated_task_refuses_a_generator_that_draws_another_map(tmp_path):
+    task = suite.TASKS["gen_9x13-v1"]
+    assert suite.materialize(task, tmp_path).endswith("gen_9x13.txt")
+    assert (tmp_path / "gen_9x13.regions.txt").exists()
+    changed = suite.Task(**{**task.__dict__, "sha256": "0" * 64})
+    with pytest.raises(ConfigError, match="the generator now draws another map"):
+        suite.materialize(changed, tmp_path)
+
+
+# -- scores ------------------------------------------------------------------------------------------
+def test_scores_are_one_at_the_reference_and_fall_with_steps_and_missed_victims():
+    s = benchmark.episode_scores([300, 300, 200, 0], [24, 48, 300, 300], ref_return=300, ref_steps=24)
+    np.testing.assert_allclose(s, [1.0, 0.5, 2 / 3 * 24 / 300, 0.0])
+    np.testing.assert_allclose(benchmark.episode_scores([600, 300], [50, 80], ref_return=600), [1.0, 0.5])
+
+
+def test_curves_keep_the_best_so_far_and_find_the_first_step_at_the_target():
+    y = benchmark.best_so_far([[0.2, np.nan, 0.95, 0.5], [0.1, 0.3, 0.4, 0.6]])
+    np.testing.assert_allclose(y, [[0.2, 0.2, 0.95, 0.95], [0.1, 0.3, 0.4, 0.6]])
+    x = np.array([[10, 20, 30, 40], [10, 20, 30, 40]])
+    assert benchmark.steps_to(x, y) == [30, None]
+    np.testing.assert_allclose(benchmark.curve_on(np.array([5, 10, 35, 100]), x, y),
+                               [[0, 0.2, 0.95, 0.95], [0, 0.1, 0.4, 0.6]])
+
+
+# -- bad input ---------------------------------------------------------------------------------------
+def test_an_algorithm_on_a_task_it_cannot_run_is_a_one_line_error_before_anything_compiles(tmp_path, capsys):
+    argv = ["benchmark", "--tasks", "minimap-v1", "--algorithms", "hierarchical", "--out", str(tmp_path / "b")]
+    with pytest.raises(SystemExit, match="2"):
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jaxusar benchmark: error: hierarchical cannot run minimap-v1: the paper's method has no "
+                          "options yet for") and "\n" not in err
+    assert not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--algorithms", "sarsa"], "unknown algorithm(s) 'sarsa'; the benchmark runs hierarchical, doc, iql, vdn, qmix"),
+    (["--tasks", "two_rooms-v2"], "unknown task version 'two_rooms-v2'"),
+])
+def test_bad_benchmark_arguments(argv, message, tmp_path, capsys):
+    with pytest.raises(SystemExit, match="2"):
+        main(["benchmark", "--out", str(tmp_path / "b"), *argv])
+    assert message in capsys.readouterr().err
+
+
+# -- one tiny run, end to end ------------------------------------------------------------------------
+TINY = ["train.episodes=4", "train.test_every=2", "train.chunk_steps=256", "dqn.hidden=[8]", "dqn.batch_size=4",
+        "dqn.buffer_capacity=256", "dqn.learning_starts=0", "dqn.train_every=4"]
+
+
+def test_a_tiny_benchmark_writes_its_leaderboard_figures_and_counts_env_steps(tmp_path, capsys):
+    out = tmp_path / "bench"
+    argv = ["benchmark", "--tasks", "two_rooms-v1", "gen_9x13-v1", "--algorithms", "iql", "vdn", "--trials", "2",
+            "--out", str(out), "--quiet", "--set", "env.horizon=40"] + [x for s in TINY for x in ("--set", s)]
+    assert main(argv) == 0
+    for name in ("leaderboard.md", "tasks.md", "results.json", "aggregates.png", "profile.png", "improvement.png",
+                 "sample_efficiency.png"):
+        assert (out / name).stat().st_size > 0, name
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["algorithms"]) == {"iql", "vdn"} and results["tasks"]["two_rooms-v1"]["reference"]["steps"] == 18
+    board = (out / "leaderboard.md").read_text()
+    assert "| iql | 2 |" in board and "| vdn | 2 |" in board
+    for key, run in results["runs"].items():
+        assert len(run["final_score"]) == 2 and all(0 <= s <= 1 for s in run["final_score"])
+        # env steps: primitive actions of both medics over the training episodes (curves.csv's steps)
+        rows = list(csv.DictReader(open(out / "runs" / f"{key}" / "curves.csv")))
+        by_trial = [2 * sum(int(r["steps"]) for r in rows if r["kind"] == "train" and r["trial"] == str(k))
+                    for k in range(2)]
+        assert run["env_steps"] == by_trial, key
+        assert np.all(np.diff(run["curve_env_steps"], axis=1) >= 0)
+    with pytest.raises(SystemExit, match="2"):  # a finished benchmark is never overwritten
+        main(argv)
+    assert "results.json exists" in capsys.readouterr().err
