@@ -117,6 +117,8 @@ from jaxusar.cli import main
 from jaxusar.core import checkpoint
 
 save = checkpoint.save
+# Python's own Ctrl-C handler, whatever this process inherited (a test runner's worker may ignore SIGINT)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def save_then_ctrl_c(path, tree, meta):
     save(path, tree, meta)

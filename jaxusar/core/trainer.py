@@ -484,6 +484,15 @@ class Trainer:
         self._chunk = jax.jit(self._run_chunk, donate_argnums=0, out_shardings=shardings).lower(state).compile()
         return time.perf_counter() - start
 
+    def release_programs(self) -> None:
+        """Drop this trainer's compiled programs (a finished stage's). A run of many trainers (a benchmark's
+        dozens) would otherwise keep every one in memory, and past ~40 programs LLVM ran out of memory maps
+        for their code (vm.max_map_count). A later call compiles again."""
+        for f in (self._chunk, self._lanes_chunk, self._init):
+            if hasattr(f, "clear_cache"):
+                f.clear_cache()
+        self._chunk = jax.jit(self._run_chunk, donate_argnums=0)
+
     # -- host loop ------------------------------------------------------------------------------
     def max_chunks(self) -> int:
         max_steps = self.cfg.episodes * self.env.horizon

@@ -53,7 +53,7 @@ ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix")
 SETTINGS = {"doc": ["doc.options=[2]"]}
 # --quick: reduced budgets, the same pipeline, every task and algorithm within 15 minutes on a 2-core CPU
 # (docs/benchmark.md); the paper's method's sub-policies on office take most of it.
-QUICK = {"hierarchical": ["train.episodes=40", "hierarchical.coordinator.episodes=30"],
+QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
          **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}
 TARGET = 0.9  # "env steps to 90% of the reference"
 CURVE_POINTS = 40

@@ -200,8 +200,10 @@ class Runner:
             lambda info: None if self.stopping.is_set() else self.progress(stage.name, info))
         state = trainer.train(stage.keys, progress=progress, state=state, on_chunk=on_chunk)
         save(state, finished=True)
-        return Outcome(trainer.results(state), compile_seconds, meta["run_seconds"], int(state.chunk), resumed,
-                       light(state))
+        outcome = Outcome(trainer.results(state), compile_seconds, meta["run_seconds"], int(state.chunk), resumed,
+                          light(state))
+        trainer.release_programs()
+        return outcome
 
     def check_fits(self, path: Path, meta: dict, stage: Stage) -> None:
         """Refuse, in words, a checkpoint of another configuration, stage or number of lanes (trials)."""
