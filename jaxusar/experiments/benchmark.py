@@ -46,6 +46,7 @@ from jaxusar import algos, config, envs, planning
 from jaxusar.experiments import reproduce, stats, train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.suite import Task, materialize, resolve
+from jaxusar.experiments.plots import benchmark_figures, reward_range
 from jaxusar.experiments.usage import Usage
 
 ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix")
@@ -99,8 +100,7 @@ def reference(task: Task, env) -> dict:
         ref = planning.clairvoyant_reference(env, n_draws=task.test_draws, seed=task.draw_seed)
         return {"return": float(ref["return"]), "steps": None, "kind": ref["reference"], "draws": task.test_draws}
     ref = planning.team_reference(env)
-    every = float(env.triage_reward * np.sum(env.victim_kind == 0) + env.critical_reward * np.sum(env.victim_kind == 1))
-    ret = ref.get("return", every + env.step_penalty * ref["steps"])
+    ret = ref.get("return", reward_range(env)[1] + env.step_penalty * ref["steps"])  # every victim triaged
     return {"return": float(ret), "steps": int(ref["steps"]), "kind": ref.get("return_reference", ref["reference"]),
             "draws": 1}
 
@@ -115,7 +115,6 @@ def test_keys(task: Task, env) -> jax.Array:
 class Pair:
     task: Task
     algo: str
-    cfg: config.ExperimentConfig
     experiment: object
     prefix: str  # its stages' names in the shared Runner: "<task id>/<stage>"
 
@@ -176,7 +175,7 @@ def test_curve(stage, results: dict, offset: np.ndarray) -> tuple[np.ndarray, np
         np.asarray(results["test_length"], float)
 
 
-def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array, env) -> dict:
+def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
     """A pair's per-trial final scores, env steps, env steps to TARGET and best-so-far curve."""
     chain = pair.chain
     last = chain[-1]
@@ -287,7 +286,7 @@ def run(tasks: list[str] | None = None, algorithms: list[str] | None = None, tri
                 for a, cfg in cfgs.items():
                     folder = out / "runs" / task.id / a
                     folder.mkdir(parents=True, exist_ok=True)
-                    pairs.append(Pair(task, a, cfg, train.experiment(cfg, keys), f"{task.id}/{a}"))
+                    pairs.append(Pair(task, a, train.experiment(cfg, keys), f"{task.id}/{a}"))
             chains = [[dataclasses.replace(s, name=f"{p.prefix}/{s.name}") for s in c]
                       for p in pairs for c in p.experiment.chains]
             chains.sort(key=lambda c: -sum(reproduce.expected_cost(s) for s in c))  # longest first
@@ -307,7 +306,7 @@ def run(tasks: list[str] | None = None, algorithms: list[str] | None = None, tri
                 own = {name[len(pair.prefix) + 1:]: o for name, o in outcomes.items() if name.startswith(pair.prefix + "/")}
                 metrics = pair.experiment.finish(out / "runs" / task.id / pair.algo, own)
                 (out / "runs" / task.id / pair.algo / "metrics.json").write_text(json.dumps(metrics, indent=2))
-                scored[task.id, pair.algo] = score_pair(pair, outcomes, ref, test_keys(task, env), env)
+                scored[task.id, pair.algo] = score_pair(pair, outcomes, ref, test_keys(task, env))
         except KeyboardInterrupt:
             raise runner.interrupted() from None
     results = summarize(planned, names, scored, skipped, trials, quick)
@@ -391,8 +390,6 @@ def task_tables(results: dict) -> str:
 
 
 def write(out: Path, results: dict) -> None:
-    from jaxusar.experiments.plots import benchmark_figures
-
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "leaderboard.md").write_text(leaderboard(results))
     (out / "tasks.md").write_text(task_tables(results))

@@ -337,6 +337,7 @@ class Experiment:
             per_trial.append({"subpolicies_sum": sub_sum, "subpolicies_max": sub_max, "coordinator": c_eto,
                               "total": total, "single_start_total": single})
         eto = [p["total"] for p in per_trial]
+        sub_steps = np.asarray(sub["env_steps"]).sum(0)  # per trial, over its sub-policies' lanes
         metrics = {
             "algorithm": "hierarchical", "trials": trials, "episodes_to_optimal": eto, **summarize(eto),
             "subpolicy_episodes_to_optimal": {"sum": [p["subpolicies_sum"] for p in per_trial],
@@ -357,9 +358,8 @@ class Experiment:
             **reference_metrics(b["reference"], co), "optimal_slack": cfg.train.optimal_slack,
             "best_team_test_return": co["best_return"].tolist(), "best_team_test_steps": co["best_length"].tolist(),
             # primitive actions of all agents in training: every sub-policy's episodes, then the coordinator's
-            "env_steps": (np.asarray(sub["env_steps"]).sum(0) + np.asarray(co["env_steps"])).tolist(),
-            "env_steps_by_stage": {"subpolicies": np.asarray(sub["env_steps"]).sum(0).tolist(),
-                                   "coordinator": np.asarray(co["env_steps"]).tolist()},
+            "env_steps": (sub_steps + np.asarray(co["env_steps"])).tolist(),
+            "env_steps_by_stage": {"subpolicies": sub_steps.tolist(), "coordinator": np.asarray(co["env_steps"]).tolist()},
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }
