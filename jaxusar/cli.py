@@ -222,7 +222,8 @@ def add_train(subparsers) -> None:
         description="Train N trials of ALGO at once (one jit(vmap) call per chunk) and write DIR/metrics.json, "
                     "DIR/curves.csv, DIR/params/ and the algorithm's figures:\n"
                     + figures
-                    + "Settings: the algorithm's defaults, the map's settings file if it has one, then --config "
+                    + "Settings: the algorithm's defaults, the map-derived ones (docs/algorithms.md), the map's settings "
+                    "file if it has one, then --config "
                     "FILE, then --set overrides. A tiny run: --trials 2 --set train.episodes=100 (train.test_every "
                     "must not exceed train.episodes; hierarchical's budgets are per stage: train.episodes per "
                     "sub-policy, hierarchical.coordinator.episodes for the coordinator).",

@@ -10,7 +10,9 @@ A config file has up to four sections, each a frozen dataclass below::
 
 Unknown keys, wrong types and impossible values raise ``ConfigError`` naming the dotted key.
 ``--set train.episodes=200`` style overrides go through the same validation. Layers, each over the one
-before: the dataclass defaults, an algorithm's ``DEFAULTS``, the map's ``NAME.settings.yaml`` (settings
+before: the dataclass defaults, an algorithm's ``DEFAULTS``, the defaults derived from the map
+(``map_defaults``: the coordinator kind, option termination and budgets from its size), the map's
+``NAME.settings.yaml`` (settings
 that name its tasks or regions, or that one learner needs there, so they apply only on that map; see
 ``map_settings``), a config file, ``--set``.
 """
@@ -434,6 +436,51 @@ def map_settings(data: dict) -> dict:
     return _merge(settings, own.get(data.get("algo", ExperimentConfig.algo)) or {})
 
 
+# The map-derived defaults (``map_defaults``): the settings office's and four_rooms' tuning found, as rules
+# on what any map has, so that a map with no settings file gets them too (benchmarks/README.md, "The flat
+# and factored coordinators" and "Long corridors cut into pieces").
+FACTORED_FROM_AGENTS = 3   # the flat head is options ^ agents wide: from three agents the factored one wins
+OWN_END_FROM_AGENTS = 4    # from four agents an option ending every few steps re-routes the whole team
+WIDE_MAP_CELLS = 512       # a cell one-hot this wide: look its weight rows up; the sub-policy lanes are many
+
+
+def map_defaults(data: dict) -> dict:
+    """Settings derived from the map that ``data`` (a config dict) runs on: a layer over the algorithm's
+    defaults and under the map's settings file, a config file and ``--set``.
+
+    - from 3 agents, the factored coordinator (one option head per agent);
+    - from 4 agents, options that run to their own end, with a coordinator budget three times the
+      default and epsilon decayed over twice as many decisions (office's tuning, seed 1000);
+    - on a map of 512 cells or more, the sub-policies' one-hot input looked up, and for the paper's
+      method shorter sub-policy chunks (1,000 steps) with an update every 2 env steps.
+
+    {} for a map that does not load: its error comes later, from the env, with its own message."""
+    from jaxusar.envs.layout import LayoutError, load_layout
+
+    env = data.get("env", {})
+    name = env.get("map", EnvConfig.map) if isinstance(env, dict) else None
+    try:
+        layout = load_layout(name)
+    except (LayoutError, OSError, TypeError, ValueError):
+        return {}
+    agents = len(layout.agent_start)
+    out: dict = {}
+    coordinator = {}
+    if agents >= FACTORED_FROM_AGENTS:
+        coordinator["kind"] = "factored"
+    if agents >= OWN_END_FROM_AGENTS:
+        default = CoordinatorConfig()
+        coordinator.update(termination="own", episodes=3 * default.episodes,
+                           eps_decay_steps=3 * default.eps_decay_steps)
+    if coordinator:
+        out["hierarchical"] = {"coordinator": coordinator}
+    if layout.shape[0] * layout.shape[1] >= WIDE_MAP_CELLS:
+        out["dqn"] = {"one_hot_input": True}
+        if data.get("algo", ExperimentConfig.algo) == "hierarchical":
+            out = _merge(out, {"train": {"chunk_steps": 1000}, "dqn": {"train_every": 2}})
+    return out
+
+
 def load(path: str | Path | None = None, sets: list[str] | None = None, defaults: dict | None = None,
          cls=ExperimentConfig):
     """The config of ``defaults``, then the map's settings file (if any), then the YAML file at ``path``,
@@ -447,6 +494,7 @@ def load(path: str | Path | None = None, sets: list[str] | None = None, defaults
     given = _merge(loaded, parse_set(sets or []))
     data = dict(defaults or {})
     if cls is ExperimentConfig:  # the map is known only once every layer is read
+        data = _merge(data, map_defaults(_merge(data, given)))
         data = _merge(data, map_settings(_merge(data, given)))
     cfg = from_dict(cls, _merge(data, given))
     return cfg.validate() if hasattr(cfg, "validate") else cfg

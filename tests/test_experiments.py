@@ -314,6 +314,46 @@ def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
     assert e.value.code == 2 and "TRIAGE-LEFT-VICTIM" in err and "hierarchical.task_gamma={}" in err
 
 
+@pytest.mark.parametrize("name", ["two_rooms", "four_rooms", "office"])
+@pytest.mark.parametrize("algo", ["hierarchical", "iql", "doc"])
+def test_map_derived_defaults_give_the_committed_results_their_configs(name, algo):
+    # four_rooms' and office's coordinator and chunking settings now come from their size, not their
+    # settings files: the configs (hashes) of their committed results must be the ones a run gets today
+    from jaxusar import algos, config
+
+    committed = json.loads((Path(__file__).parents[1] / "results" / name / algo / "metrics.json").read_text())
+    assert config.load(None, [f"env.map={name}"], algos.defaults(algo)).hash() == committed["config_hash"]
+
+
+def test_map_derived_defaults_follow_the_team_and_the_map_size(tmp_path):
+    from jaxusar import algos, config
+    from jaxusar.envs import mapgen
+
+    def write(name, **kw):
+        _, text, regions = mapgen.generated_layout(name=name, seed=1, **kw)
+        (tmp_path / f"{name}.txt").write_text(text)
+        (tmp_path / f"{name}.regions.txt").write_text(regions)
+
+    def coordinator(path, *sets):
+        cfg = config.load(None, [f"env.map={path}", *sets], algos.defaults("hierarchical"))
+        return cfg.hierarchical.coordinator, cfg
+
+    for medics, kind, termination, episodes in [(2, "flat", "all", 100), (3, "factored", "all", 100),
+                                                (4, "factored", "own", 300)]:
+        write(f"m{medics}", height=12, width=16, rooms=4, medics=medics, victims=3)
+        c, cfg = coordinator(tmp_path / f"m{medics}.txt")
+        assert (c.kind, c.termination, c.episodes, c.eps_decay_steps) == (kind, termination, episodes, 2 * episodes)
+        assert not cfg.dqn.one_hot_input and cfg.train.chunk_steps == 4000  # 192 cells: not a wide map
+    # --set still wins over a derived default; a wide map looks its one-hot up, and chunks the paper's method
+    c, _ = coordinator(tmp_path / "m4.txt", "hierarchical.coordinator.termination=all")
+    assert c.termination == "all" and c.episodes == 300
+    write("wide", height=20, width=30, rooms=6, medics=2, victims=3)
+    _, cfg = coordinator(tmp_path / "wide.txt")
+    assert cfg.dqn.one_hot_input and (cfg.train.chunk_steps, cfg.dqn.train_every) == (1000, 2)
+    iql = config.load(None, [f"env.map={tmp_path / 'wide.txt'}"], algos.defaults("iql"))
+    assert iql.dqn.one_hot_input and iql.dqn.train_every == config.DQNConfig().train_every  # chunking: hierarchical only
+
+
 def test_a_config_of_another_algorithm_says_how_to_start_from_it(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main(["train", "doc", "--config", str(Path(__file__).parents[1] / "configs" / "iql.yaml"), "--out", str(tmp_path / "x")])
