@@ -189,7 +189,7 @@ def test_the_listed_algorithms_are_the_registry_and_each_trains_from_the_cli(nav
     default config (and with goal-conditioned navigation), on a map without the two-rooms map's task names."""
     from jaxusar import algos
 
-    assert sorted(algos.registry()) == ["doc", "hierarchical", "iql", "qmix", "vdn"]
+    assert sorted(algos.registry()) == ["doc", "hierarchical", "iql", "qmix", "scripted", "vdn"]
     assert algos.registry()["hierarchical"].__name__ == "jaxusar.algos.coordinator"
     out = tmp_path / "hierarchical"
     assert main(["train", "hierarchical", "--trials", "1", "--out", str(out), "--quiet",
@@ -275,7 +275,7 @@ def test_modules_that_are_parts_of_an_algorithm_are_not_trainable(name, capsys):
     with pytest.raises(SystemExit) as e:
         main(["train", name])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "unknown algorithm" in err and "doc, hierarchical, iql, qmix, vdn" in err
+    assert e.value.code == 2 and "unknown algorithm" in err and "doc, hierarchical, iql, qmix, scripted, vdn" in err
 
 
 def test_map_settings_apply_on_their_map_only(tmp_path, capsys):
