@@ -397,7 +397,7 @@ def add_benchmark(subparsers) -> None:
                     "DIR/leaderboard.md, DIR/tasks.md, DIR/results.json and four figures. Interrupted runs resume.")
     p.add_argument("--tasks", nargs="+", default=None, metavar="ID", help="task ids (default: every task)")
     p.add_argument("--algorithms", nargs="+", default=None, metavar="ALGO",
-                   help="hierarchical, doc, iql, vdn, qmix (default: all)")
+                   help="hierarchical, doc, iql, vdn, qmix, scripted (default: all)")
     p.add_argument("--trials", type=int, default=8, help="independent seeds per task and algorithm (default 8)")
     p.add_argument("--quick", action="store_true", help="reduced budgets: the whole suite in minutes, for a first look")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/benchmark)")

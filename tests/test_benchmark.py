@@ -67,7 +67,7 @@ def test_an_algorithm_on_a_task_it_cannot_run_is_a_one_line_error_before_anythin
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--algorithms", "sarsa"], "unknown algorithm(s) 'sarsa'; the benchmark runs hierarchical, doc, iql, vdn, qmix"),
+    (["--algorithms", "sarsa"], "unknown algorithm(s) 'sarsa'; the benchmark runs hierarchical, doc, iql, vdn, qmix, scripted"),
     (["--tasks", "two_rooms-v2"], "unknown task version 'two_rooms-v2'"),
 ])
 def test_bad_benchmark_arguments(argv, message, tmp_path, capsys):
@@ -83,16 +83,21 @@ TINY = ["train.episodes=4", "train.test_every=2", "train.chunk_steps=256", "dqn.
 
 def test_a_tiny_benchmark_writes_its_leaderboard_figures_and_counts_env_steps(tmp_path, capsys):
     out = tmp_path / "bench"
-    argv = ["benchmark", "--tasks", "two_rooms-v1", "gen_9x13-v1", "--algorithms", "iql", "vdn", "--trials", "2",
+    argv = ["benchmark", "--tasks", "two_rooms-v1", "gen_9x13-v1", "--algorithms", "iql", "vdn", "scripted", "--trials", "2",
             "--out", str(out), "--quiet", "--set", "env.horizon=40"] + [x for s in TINY for x in ("--set", s)]
     assert main(argv) == 0
     for name in ("leaderboard.md", "tasks.md", "results.json", "aggregates.png", "profile.png", "improvement.png",
                  "sample_efficiency.png"):
         assert (out / name).stat().st_size > 0, name
     results = json.loads((out / "results.json").read_text())
-    assert set(results["algorithms"]) == {"iql", "vdn"} and results["tasks"]["two_rooms-v1"]["reference"]["steps"] == 18
+    assert set(results["algorithms"]) == {"iql", "vdn", "scripted"} and results["tasks"]["two_rooms-v1"]["reference"]["steps"] == 18
     board = (out / "leaderboard.md").read_text()
     assert "| iql | 2 |" in board and "| vdn | 2 |" in board
+    # the scripted team learns nothing: its score from 0 env steps, the optimum on two_rooms
+    scripted = results["runs"].pop("two_rooms-v1/scripted")
+    assert scripted["final_score"] == [1.0, 1.0] and scripted["env_steps"] == [0, 0]
+    assert scripted["env_steps_to_target"] == [0, 0] and "| scripted | 2 |" in board
+    results["runs"].pop("gen_9x13-v1/scripted")
     for key, run in results["runs"].items():
         assert len(run["final_score"]) == 2 and all(0 <= s <= 1 for s in run["final_score"])
         # env steps: primitive actions of both medics over the training episodes (curves.csv's steps)

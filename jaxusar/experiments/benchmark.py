@@ -49,13 +49,13 @@ from jaxusar.experiments.suite import Task, materialize, resolve
 from jaxusar.experiments.plots import benchmark_figures, reward_range
 from jaxusar.experiments.usage import Usage
 
-ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix")
+ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
 # Option-critic runs one K here: 2, the only one that learned in the paper (Table II, Fig. 5).
 SETTINGS = {"doc": ["doc.options=[2]"]}
 # --quick: reduced budgets, the same pipeline, every task and algorithm within 15 minutes on a 2-core CPU
 # (docs/benchmark.md); the paper's method's sub-policies on office take most of it.
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
-         **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}
+         **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}  # scripted: nothing to train
 TARGET = 0.9  # "env steps to 90% of the reference"
 CURVE_POINTS = 40
 
@@ -176,7 +176,18 @@ def test_curve(stage, results: dict, offset: np.ndarray) -> tuple[np.ndarray, np
 
 
 def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
-    """A pair's per-trial final scores, env steps, env steps to TARGET and best-so-far curve."""
+    """A pair's per-trial final scores, env steps, env steps to TARGET and best-so-far curve. A pair with
+    nothing to train (the scripted team) plays its episodes as they are: its curve is its score from 0 env steps."""
+    if not pair.experiment.chains:
+        ep = pair.experiment.play(keys)
+        ret, steps = np.asarray(ep["return"], float), np.asarray(ep["steps"], float)
+        score = ret.mean(1) / ref["return"] if ref["steps"] is None else \
+            episode_scores(ret[:, 0], steps[:, 0], ref["return"], ref["steps"])
+        trials = len(score)
+        return {"final_score": [round(float(v), 6) for v in score], "env_steps": [0] * trials,
+                "env_steps_to_target": [0 if v >= TARGET - 1e-9 else None for v in score],
+                "curve_env_steps": [[0]] * trials, "curve_score": [[round(float(v), 6)] for v in score],
+                "final_return": ret.mean(1).round(4).tolist(), "final_steps": steps.mean(1).round(2).tolist()}
     chain = pair.chain
     last = chain[-1]
     results = {s.name: outcomes[f"{pair.prefix}/{s.name}"].results for s in chain}

@@ -76,14 +76,17 @@ class Experiment:
         self.env = envs.make(cfg.env.map, **cfg.env.overrides())
         self.chains = []
 
+    def play(self, resets: jax.Array) -> dict:
+        """Each trial's episodes from the reset keys ``resets``: ``scripted.rollout``'s arrays, [trials, draws]."""
+        play = jax.vmap(jax.vmap(lambda r, k: scripted.rollout(self.env, r, k), (0, None)), (None, 0))
+        return jax.device_get(jax.jit(play)(resets, self.keys))
+
     def finish(self, out: Path, outcomes: dict) -> dict:
         from jaxusar.experiments.train import environment_info
 
         env, cfg = self.env, self.cfg
         resets = judging_keys(env)
-        play = jax.vmap(jax.vmap(lambda r, k: scripted.rollout(env, r, k), (0, None)), (None, 0))
-        episodes = jax.device_get(jax.jit(play)(resets, self.keys))
-        judged = judge(env, episodes)
+        judged = judge(env, self.play(resets))
         if env.n_drawn:
             n = judged["normalized"]
             line = (f"normalized score over {len(resets)} draws (mean return / the {judged['reference']}'s "
