@@ -450,7 +450,7 @@ def map_defaults(data: dict) -> dict:
 
     - from 3 agents, the factored coordinator (one option head per agent);
     - from 4 agents, options that run to their own end, with a coordinator budget three times the
-      default and epsilon decayed over twice as many decisions (office's tuning, seed 1000);
+      default and epsilon decayed over three times as many decisions (300 and 600: office's tuning, seed 1000);
     - on a map of 512 cells or more, the sub-policies' one-hot input looked up, and for the paper's
       method shorter sub-policy chunks (1,000 steps) with an update every 2 env steps.
 

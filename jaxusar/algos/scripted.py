@@ -59,12 +59,12 @@ def act(env: USAREnv, state: EnvState, key: jax.Array) -> jax.Array:
     vpos = state.victim_pos
     open_victim = ~state.triaged & ~state.dead & known[vpos[:, 0], vpos[:, 1]]
     critical = open_victim & (jnp.asarray(env.victim_kind) == CRITICAL)
-    victim_cells = jnp.zeros((height, width), bool).at[vpos[:, 0], vpos[:, 1]].set(True)
     rubble = state.rubble & known
-    passable = ~blocked & ~victim_cells & ~rubble
+    solid, victim_at = env._victim_cells(state)  # blocked or holding a victim; each cell's victim (-1: none)
+    passable = ~solid & ~rubble
 
-    def cells(mask):
-        return jnp.zeros((height, width), bool).at[vpos[:, 0], vpos[:, 1]].max(mask)
+    def cells(mask):  # bool[H, W]: the cells of the victims in ``mask``
+        return (victim_at >= 0) & mask[victim_at]
 
     fields = jnp.stack([distance_to(cells(critical), passable), distance_to(cells(open_victim), passable),
                         distance_to(rubble, passable), distance_to(~blocked & ~known, passable)])
@@ -99,8 +99,7 @@ def act(env: USAREnv, state: EnvState, key: jax.Array) -> jax.Array:
 
 def rollout(env: USAREnv, reset_key: jax.Array, key: jax.Array, trace: bool = False) -> dict:
     """One scripted team episode from the reset of ``reset_key`` (the draw), tie-breaks from ``key``:
-    return, steps (the horizon if unfinished), victims saved, critical victims saved and how many there
-    were; with ``trace``, also ``states`` (the reset state and the state after each step, [horizon + 1])
+    return, steps (the horizon if unfinished), victims saved and critical victims saved; with ``trace``, also ``states`` (the reset state and the state after each step, [horizon + 1])
     and ``rewards`` ([horizon])."""
     _, state = env.reset(reset_key)
 
@@ -114,8 +113,7 @@ def rollout(env: USAREnv, reset_key: jax.Array, key: jax.Array, trace: bool = Fa
     init = (state, jnp.zeros((), jnp.float32), jnp.array(False), jnp.zeros((), jnp.int32))
     (last, ret, _, steps), trajectory = jax.lax.scan(step, init, jax.random.split(key, env.horizon))
     is_critical = jnp.asarray(env.victim_kind) == CRITICAL
-    out = {"return": ret, "steps": steps, "saved": last.triaged.sum(),
-           "critical_saved": (last.triaged & is_critical).sum(), "critical": is_critical.sum()}
+    out = {"return": ret, "steps": steps, "saved": last.triaged.sum(), "critical_saved": (last.triaged & is_critical).sum()}
     if trace:
         states, rewards = trajectory
         out["states"] = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)

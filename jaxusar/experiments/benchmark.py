@@ -69,6 +69,14 @@ def episode_scores(returns, steps, ref_return, ref_steps=None) -> np.ndarray:
     return score * np.minimum(1.0, float(ref_steps) / np.maximum(np.asarray(steps, float), 1.0))
 
 
+def final_scores(ret: np.ndarray, steps: np.ndarray, ref: dict) -> np.ndarray:
+    """Per trial: the score of its greedy episodes ``ret``, ``steps`` [trials, draws] (module doc): mean R over
+    R* where victims are drawn, else the one episode's ``episode_scores``."""
+    if ref["steps"] is None:
+        return ret.mean(1) / ref["return"]
+    return episode_scores(ret[:, 0], steps[:, 0], ref["return"], ref["steps"])
+
+
 def best_so_far(scores: np.ndarray) -> np.ndarray:
     """[trials, tests]: the best score up to each test (a test not run, nan, keeps the best before it; 0 first)."""
     return np.maximum.accumulate(np.nan_to_num(np.asarray(scores, float), nan=0.0), axis=-1)
@@ -181,8 +189,7 @@ def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
     if not pair.experiment.chains:
         ep = pair.experiment.play(keys)
         ret, steps = np.asarray(ep["return"], float), np.asarray(ep["steps"], float)
-        score = ret.mean(1) / ref["return"] if ref["steps"] is None else \
-            episode_scores(ret[:, 0], steps[:, 0], ref["return"], ref["steps"])
+        score = final_scores(ret, steps, ref)
         trials = len(score)
         return {"final_score": [round(float(v), 6) for v in score], "env_steps": [0] * trials,
                 "env_steps_to_target": [0 if v >= TARGET - 1e-9 else None for v in score],
@@ -200,8 +207,7 @@ def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
         offset += np.asarray(results[s.name]["env_steps"], float).reshape(trials, -1).sum(1)
     final = results[last.name]
     ret, steps = evaluate(last, final, env_params, keys)
-    score = ret.mean(1) / ref["return"] if ref["steps"] is None else \
-        episode_scores(ret[:, 0], steps[:, 0], ref["return"], ref["steps"])
+    score = final_scores(ret, steps, ref)
     x, test_ret, test_len = test_curve(last, final, offset)
     y = best_so_far(episode_scores(test_ret, test_len, ref["return"], ref["steps"]))
     env_steps = offset + np.asarray(final["env_steps"], float)

@@ -23,6 +23,7 @@ import numpy as np
 
 from jaxusar import envs, planning
 from jaxusar.envs.render import save_episode_strip
+from jaxusar.envs.usar import CRITICAL
 from jaxusar.algos import scripted
 from jaxusar.config import ExperimentConfig
 from jaxusar.experiments.stats import trials as trial_stats
@@ -50,7 +51,7 @@ def judge(env, episodes: dict) -> dict:
     out = {"mean_return": ep["return"].mean(1).round(4).tolist(),
            "fraction_all_saved": all_saved.mean(1).round(4).tolist(),
            "critical_saved": ep["critical_saved"].mean(1).round(4).tolist(),
-           "critical_victims": int(np.sum(env.victim_kind == 1))}
+           "critical_victims": int(np.sum(env.victim_kind == CRITICAL))}
     if env.n_drawn:
         ref = planning.clairvoyant_reference(env, n_draws=ep["return"].shape[1], seed=DRAW_SEED)
         score = ep["return"].mean(1) / ref["return"]
