@@ -9,7 +9,7 @@ from jaxusar import config, envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import defaults as algos_defaults
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import NAVIGATE, TRIAGE, next_hop, options_from_graph
+from jaxusar.algos.options import CLEAR, NAVIGATE, TRIAGE, Rubble, next_hop, options_from_graph
 from jaxusar.config import ConfigError
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.hierarchical import auto_option_timeout
@@ -276,7 +276,7 @@ def test_smdp_row_marks_invalid_choices_terminal(two_rooms):
 
 
 def _oracle_macro(env, navigation, cfg):
-    opts = options_from_graph(env.graph, navigation)
+    opts = options_from_graph(env.graph, navigation, env)
     tasks = sp.make_tasks(env, opts, navigation=navigation)
     params = sp.task_params(env, tasks, 0.99, {})
     senv = sp.SubtaskEnv(env, env.horizon, n_goals=max(len(t.goals) for t in tasks))
@@ -610,3 +610,105 @@ def test_factored_coordinator_solves_four_rooms_over_exact_subpolicies():
                                                       optimal=bound, kind="factored")
     assert all(e is not None for e in res["episodes_to_solved"]), res["episodes_to_solved"]
     assert all(length <= 1.25 * bound for length in res["best_length"]), res["best_length"]
+
+
+# -- rubble and engineers (contract part 2) ----------------------------------------------------------
+@pytest.fixture(scope="module")
+def rubble_options():
+    env = envs.make("two_rooms_rubble", horizon=300)
+    return env, options_from_graph(env.graph, "chained", env)
+
+
+def test_rubble_groups_are_touching_cells():
+    two = Rubble.of(envs.make("two_rooms_rubble").layout)
+    assert two.cells.tolist() == [[6, 12], [7, 12]] and two.group.tolist() == [0, 0] and two.n_configs == 2
+    mini = Rubble.of(envs.make("minimap").layout)
+    assert mini.n_groups == 3 and mini.group_bits.tolist() == [1, 2, 4]
+    rubble = jnp.asarray(two.index >= 0).at[6, 12].set(False)  # one cell of the group cleared
+    assert int(two.mode_of(rubble)) == 1 and int(two.config_of(two.mode_of(rubble))) == 0
+    assert int(two.config_of(two.mode_of(jnp.zeros_like(rubble)))) == 1
+
+
+def test_clear_options_are_the_engineers_and_navigation_waits_for_a_way(rubble_options):
+    env, opts = rubble_options
+    assert opts.names[-1] == "CLEAR-RUBBLE-0" and opts.kind[-1] == CLEAR
+    hall, bottom, none = env.graph.index("hall_way"), env.graph.index("bottom_room"), jnp.zeros(2, bool)
+    to_bottom, triage_bottom = opts.names.index("NAVIGATE-TO-BOTTOM-ROOM"), opts.names.index("TRIAGE-BOTTOM-VICTIM")
+    medic, engineer = 0, 1
+    blocked = np.asarray(opts.can_initiate(hall, none, 0, medic))
+    assert not blocked[to_bottom] and not blocked[-1]  # no way into the bottom room; medics never clear
+    assert np.asarray(opts.can_initiate(hall, none, 1, medic))[to_bottom]  # cleared: the way is open
+    assert np.asarray(opts.can_initiate(hall, none, 0, engineer))[-1]
+    assert not np.asarray(opts.can_initiate(bottom, none, 1, engineer))[triage_bottom]  # engineers never triage
+    assert not np.asarray(opts.can_initiate(hall, none, 1, engineer)).any()  # nothing left to clear: idle
+    assert bool(opts.terminated(len(opts.names) - 1, hall, none, 1)) and not bool(opts.terminated(4, hall, none, 0))
+
+
+def test_steps_to_clear_counts_the_engineers_tool():
+    env = envs.make("two_rooms_rubble")
+    two = Rubble.of(env.layout)
+    dist = planning.steps_to_clear(env.layout.blocked, two.cells, int(two.group_bits[0]))
+    east, north = 0, 3
+    assert dist[0, 7, 11, east] == 4  # clear (7,12), step into it, turn north, clear (6,12)
+    assert dist[0, 7, 10, east] == 5 and dist[2, 6, 11, east] == 1  # (7,12) already cleared: one TRIAGE
+    assert dist[0, 7, 12, north] == -1 and dist[3, 7, 11, east] == 0  # inside rubble; nothing left to clear
+    assert dist[2, 7, 12, north] == 1  # (7,12) cleared, standing in it facing (6,12)
+
+
+def test_rubble_subtasks_are_exact_in_every_mode(rubble_options):
+    """The planner's tables (numpy, ``steps_to_clear``/``steps_to_goal`` per mode) and the sub-task's own
+    rules (jax, ``SubtaskEnv._transition``) agree: the greedy policy of the tables is optimal from every
+    initiation state of every task, in every mode."""
+    env, opts = rubble_options
+    tasks = sp.make_tasks(env, opts, navigation="chained")
+    assert [t.name for t in tasks][-1] == "CLEAR-RUBBLE-0"
+    params = sp.task_params(env, tasks, 0.95, {})
+    senv = sp.SubtaskEnv(env, env.horizon, "cell")
+    assert senv.obs_dim == 10 + 15 + 4 + 1 + 150 + 2  # a cleared flag per rubble cell
+    act, tables = sp.exact_subpolicies(senv, params)
+    for k, t in enumerate(tasks):
+        p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+        assert float(senv.coverage(lambda obs: act(tables[k], obs), p)[0]) == 1.0, t.name
+        assert set(t.initiation[:, 3] % senv.n_modes) <= set(range(4))
+    clear = tasks[-1]
+    assert not (clear.initiation[:, 3] == 3).any()  # no CLEAR state where the group is cleared
+    never = jax.tree.map(lambda x: jnp.asarray(x[len(tasks) - 1]), params)
+    assert float(senv.coverage(lambda obs: jnp.array([0]), never)[0]) == 0.0  # always FORWARD never clears
+
+
+def test_the_coordinator_clears_then_triages_with_exact_subpolicies():
+    env = envs.make("two_rooms_rubble", horizon=300)
+    cfg = config.CoordinatorConfig(kind="factored")
+    macro, tasks, sub = _oracle_macro(env, "chained", cfg)
+    p = coord.CoordinatorParams(subpolicy=sub)
+    names = macro.options.names
+    obs, s = macro.reset(None)
+    assert obs.shape == (macro.obs_dim,) and macro.obs_blocks[-1:] == (1,) and float(obs[-1]) == 0.0
+    valid = np.asarray(macro.valid_options(obs))
+    assert valid[2, names.index("CLEAR-RUBBLE-0")] and not valid[0, names.index("CLEAR-RUBBLE-0")]
+    assert not valid[1, names.index("NAVIGATE-TO-BOTTOM-ROOM")]
+    plan = [("NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-TOP-ROOM", "CLEAR-RUBBLE-0")]
+    obs, s, r, done, info = macro.step(None, s, jnp.array([names.index(o) for o in plan[0]]), p)
+    assert bool(info["valid"])
+    for _ in range(20):  # then by a fixed preference among the valid options
+        if bool(done):
+            break
+        regions, triaged, config_ = macro.decode(obs)
+        if int(config_):
+            assert not bool(jnp.asarray(s.env.rubble).any())
+        valid = np.asarray(macro.valid_options(obs))
+        prefer = [names.index(n) for n in ("TRIAGE-TOP-VICTIM", "TRIAGE-BOTTOM-VICTIM", "CLEAR-RUBBLE-0",
+                                           "NAVIGATE-TO-BOTTOM-ROOM", "NAVIGATE-TO-TOP-ROOM")]
+        choice = [next((o for o in prefer if valid[i, o]), int(np.argmax(valid[i]))) for i in range(3)]
+        obs, s, r, done, info = macro.step(None, s, jnp.array(choice), p)
+    assert bool(jnp.all(s.env.triaged)) and not bool(s.env.rubble.any())
+
+
+def test_too_much_rubble_for_the_subpolicies_is_a_one_line_error_before_anything_compiles():
+    text = "---\nA......\nrrrrrrr\nE.....V\n"
+    regions = "T top room\nB bottom room\n---\nTTTTTTT\nBBBBBBB\nBBBBBBB\n"
+    env = envs.USAREnv(envs.parse_layout(text, regions, "rubbly"))
+    with pytest.raises(ConfigError, match="'rubbly' has 7 rubble cells: the hierarchical method's sub-policies "
+                                          "handle at most 6") as err:
+        options_from_graph(env.graph, "chained", env)
+    assert "\n" not in str(err.value)

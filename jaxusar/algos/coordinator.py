@@ -1,6 +1,7 @@
 """The coordinator: SMDP Q-learning over joint options on the graph view (paper Sec. IV-C).
 
-The coordinator sees the abstract state (each agent's region one-hot, the triaged flags) and picks a
+The coordinator sees the abstract state (each agent's region one-hot, the triaged flags, on a map with
+rubble each rubble group's cleared flag: rubble is part of the floor plan every agent sees) and picks a
 joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). ``coordinator.kind: flat`` (the
 paper) has one Q-value per joint option, options ^ medics of them (refused past ``max_joint_options``:
 office would need 15^4 = 50,625); ``factored`` has one option head per medic, their values summed
@@ -145,7 +146,9 @@ class MacroEnv:
         self.option_timeout, self.block_patience = int(option_timeout), int(block_patience)
         self.factored, self.cells, self.own_termination = factored, cells, own_termination
         self.n_joint = options.n ** env.n_agents
-        self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims  # one-hot widths
+        self.rubble = options.rubble  # None: no rubble, or options without CLEAR (one config)
+        self.n_groups = self.rubble.n_groups if self.rubble is not None else 0
+        self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims + (1,) * self.n_groups
         if cells:
             self.obs_blocks += (env.height, env.width) * env.n_agents
         if own_termination:
@@ -163,6 +166,8 @@ class MacroEnv:
     def observe(self, s: MacroState) -> jax.Array:
         regions = self.env.graph.region_of(s.agent_pos)
         parts = [jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)]
+        if self.n_groups:  # each rubble group cleared (rubble is part of the floor plan every agent sees)
+            parts.append(((self.config_of(s.env) >> jnp.arange(self.n_groups)) & 1).astype(jnp.float32))
         if self.cells:
             parts += [jnp.concatenate([jax.nn.one_hot(s.agent_pos[i, 0], self.env.height),
                                        jax.nn.one_hot(s.agent_pos[i, 1], self.env.width)])
@@ -171,11 +176,17 @@ class MacroEnv:
             parts.append(jax.nn.one_hot(s.running + 1, self.options.n + 1).ravel())
         return jnp.concatenate(parts)
 
+    def config_of(self, s: EnvState) -> jax.Array:
+        """int32: the bitmask of the rubble groups cleared in ``s`` (0 without rubble)."""
+        return self.rubble.config_of(self.rubble.mode_of(s.rubble)) if self.n_groups else jnp.zeros((), jnp.int32)
+
     def decode(self, obs: jax.Array):
-        """(regions int[n_agents], triaged bool[n_victims]) of an abstract state."""
-        n = self.n_agents * self.n_regions
+        """(regions int[n_agents], triaged bool[n_victims], config int32) of an abstract state."""
+        n, v = self.n_agents * self.n_regions, self.env.n_victims
         regions = jnp.argmax(obs[:n].reshape(self.n_agents, self.n_regions), -1)
-        return regions, obs[n: n + self.env.n_victims] > 0.5
+        cleared = obs[n + v: n + v + self.n_groups] > 0.5
+        config = jnp.sum(cleared.astype(jnp.int32) << jnp.arange(self.n_groups, dtype=jnp.int32))
+        return regions, obs[n: n + v] > 0.5, config
 
     def running_of(self, obs: jax.Array) -> jax.Array:
         """int32[n_agents]: each medic's running option in an abstract state (-1: none)."""
@@ -184,9 +195,11 @@ class MacroEnv:
         width = self.n_agents * (self.options.n + 1)
         return jnp.argmax(obs[-width:].reshape(self.n_agents, -1), -1).astype(jnp.int32) - 1
 
-    def available(self, regions: jax.Array, triaged: jax.Array) -> jax.Array:
-        """bool[n_agents, O]: options each agent may start (initiation set met and a sub-policy exists)."""
-        can = jax.vmap(self.options.can_initiate, in_axes=(0, None))(regions, triaged)
+    def available(self, regions: jax.Array, triaged: jax.Array, config: jax.Array = 0) -> jax.Array:
+        """bool[n_agents, O]: options each agent may start (initiation set met for its role, and a
+        sub-policy exists)."""
+        can = jax.vmap(self.options.can_initiate, in_axes=(0, None, None, 0))(regions, triaged, config,
+                                                                              jnp.asarray(self.env.roles))
         return can & (jnp.asarray(self.policy_for)[jnp.arange(self.n_agents), regions] >= 0)
 
     def valid_options(self, obs: jax.Array) -> jax.Array:
@@ -225,14 +238,16 @@ class MacroEnv:
             victim = jnp.asarray(self.options.victim)[o]
             flag = jnp.where(victim >= 0, s.triaged[jnp.maximum(victim, 0)], False)
             goal = jnp.asarray(self.option_goals)[o]
+            if self.n_groups:  # the sub-policy's index: goal x modes + which rubble cells are cleared
+                goal = goal * self.rubble.n_modes + self.rubble.mode_of(s.rubble)
             a = self.subpolicy_act(params, self.observe_agent(s.agent_pos[i], s.agent_dir[i], flag, goal))[0]
             acts.append(jnp.where(active[i], a, TRIAGE))
         return jnp.stack(acts).astype(jnp.int32)
 
     def terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
         """bool[n_agents]: the active medics whose options have reached their termination condition in ``s``."""
-        triaged = jnp.broadcast_to(s.triaged, (self.n_agents,) + s.triaged.shape)
-        return active & jax.vmap(self.options.terminated)(options, self.env.graph.region_of(s.agent_pos), triaged)
+        done = jax.vmap(self.options.terminated, in_axes=(0, 0, None, None))
+        return active & done(options, self.env.graph.region_of(s.agent_pos), s.triaged, self.config_of(s))
 
     def advance(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                 p: CoordinatorParams):

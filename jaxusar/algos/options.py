@@ -9,8 +9,16 @@ sub-policy. For each victim v, in room R: TRIAGE-v (initiation: the agent
 is in R and v is not yet triaged; termination: v is triaged). On the two-rooms map this is Table I:
 NAVIGATE-TO-TOP-ROOM, NAVIGATE-TO-BOTTOM-ROOM, TRIAGE-TOP-VICTIM, TRIAGE-BOTTOM-VICTIM.
 
-Initiation and termination are pure functions of the abstract state (agent region, triaged flags),
-usable inside jit.
+Rubble (contract part 2) adds, for each group g of touching rubble cells, CLEAR-g: engineers only,
+offered in the regions that hold or touch a cell of g while g is not cleared, ending when every cell of
+g is cleared. TRIAGE is for medics only. Where rubble lies, every option is also offered only where the
+rubble not yet cleared leaves a way: from every open cell of the agent's region, the room (NAVIGATE),
+the victim (TRIAGE) or a cell next to the group (CLEAR) can be reached with every uncleared group's
+cells solid (``open_from``, one table per *config*: the bitmask of cleared groups). An engineer with no
+rubble left to clear is idle (no option).
+
+Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
+cleared groups), usable inside jit.
 """
 
 from __future__ import annotations
@@ -21,9 +29,76 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxusar.config import ConfigError
 from jaxusar.envs.graph import RegionGraph
+from jaxusar.envs.layout import ENGINEER, MEDIC
 
-NAVIGATE, TRIAGE = 0, 1
+NAVIGATE, TRIAGE, CLEAR = 0, 1, 2
+KIND_NAMES = ("NAVIGATE", "TRIAGE", "CLEAR")
+MAX_RUBBLE_CELLS = 6  # sub-policies see which rubble cells are cleared: 2^6 modes per task at most
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Rubble:
+    """A map's rubble as the hierarchical method sees it (numpy, static). ``cells`` int32[K, 2] in
+    reading order; ``group`` int32[K]: touching cells (4-neighbours) share a group, numbered by first
+    cell; ``index`` int32[H, W]: each rubble cell's k, -1 elsewhere. A *mode* is the bitmask of cleared
+    cells (bit k: cell k cleared; 0 at reset), a *config* the bitmask of fully cleared groups."""
+
+    cells: np.ndarray
+    group: np.ndarray
+    index: np.ndarray
+
+    @classmethod
+    def of(cls, layout) -> "Rubble":
+        cells = np.argwhere(layout.rubble).astype(np.int32).reshape(-1, 2)
+        index = np.full(layout.shape, -1, np.int32)
+        index[tuple(cells.T)] = np.arange(len(cells))
+        group = np.full(len(cells), -1, np.int32)
+        for k in range(len(cells)):
+            if group[k] < 0:  # flood fill a new group from its first cell
+                group[k], todo = group.max() + 1, [k]
+                while todo:
+                    r, c = cells[todo.pop()]
+                    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+                        n = index[r + dr, c + dc] if 0 <= r + dr < index.shape[0] and 0 <= c + dc < index.shape[1] else -1
+                        if n >= 0 and group[n] < 0:
+                            group[n] = group[k]
+                            todo.append(n)
+        return cls(cells, group, index)
+
+    n_cells = property(lambda self: len(self.cells))
+    n_groups = property(lambda self: int(self.group.max()) + 1 if len(self.group) else 0)
+    n_modes = property(lambda self: 2 ** self.n_cells)
+    n_configs = property(lambda self: 2 ** self.n_groups)
+
+    @property
+    def group_bits(self) -> np.ndarray:
+        """int32[G]: the mode bits of each group's cells."""
+        return np.array([sum(1 << int(k) for k in np.flatnonzero(self.group == g)) for g in range(self.n_groups)],
+                        np.int32)
+
+    def mode_of(self, rubble) -> jax.Array:
+        """int32: the mode of a state's ``rubble`` bool[H, W] (its cells not yet cleared)."""
+        cleared = ~rubble[self.cells[:, 0], self.cells[:, 1]]
+        return jnp.sum(cleared.astype(jnp.int32) << jnp.arange(self.n_cells, dtype=jnp.int32))
+
+    def config_of(self, mode):
+        """The config (bitmask of fully cleared groups) of a mode (numpy or jax ints)."""
+        bits = self.group_bits
+        return sum(((mode & int(b)) == int(b)) * (1 << g) for g, b in enumerate(bits)) if len(bits) else 0 * mode
+
+    def uncleared(self, mode) -> jax.Array:
+        """bool[H, W]: the rubble cells not cleared in ``mode`` (a traced int)."""
+        index = jnp.asarray(self.index)
+        return (index >= 0) & (((mode >> jnp.maximum(index, 0)) & 1) == 0)
+
+    def uncleared_in_config(self, config: int) -> np.ndarray:
+        """bool[H, W]: the cells of the groups not cleared in ``config`` (numpy)."""
+        solid = np.zeros(self.index.shape, bool)
+        for k, (r, c) in enumerate(self.cells):
+            solid[r, c] = not (config >> int(self.group[k])) & 1
+        return solid
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -31,26 +106,50 @@ class Options:
     """The option set of a map. Arrays are numpy (static), one entry per option."""
 
     names: tuple[str, ...]
-    kind: np.ndarray      # int32[O]: NAVIGATE or TRIAGE
-    region: np.ndarray    # int32[O]: the room to reach (NAVIGATE) or the victim's room (TRIAGE)
-    victim: np.ndarray    # int32[O]: the victim to triage, -1 for NAVIGATE
+    kind: np.ndarray      # int32[O]: NAVIGATE, TRIAGE or CLEAR
+    region: np.ndarray    # int32[O]: the room to reach (NAVIGATE), the victim's room (TRIAGE), -1 (CLEAR)
+    victim: np.ndarray    # int32[O]: the victim to triage, -1 for the others
     starts_from: np.ndarray  # bool[R, R]: NAVIGATE-TO-r may start in region q where starts_from[q, r]
+    group: np.ndarray | None = None     # int32[O]: the rubble group to clear (CLEAR), -1 for the others
+    open_from: np.ndarray | None = None  # bool[C, R, O]: o may start in region q under config c (module doc)
+    rubble: Rubble | None = None
+
+    def __post_init__(self):  # a map without rubble: one config, the plain rules
+        if self.group is None:
+            object.__setattr__(self, "group", np.full(len(self.names), -1, np.int32))
+        if self.open_from is None:
+            regions = np.arange(len(self.starts_from))[:, None]
+            open_from = np.where(self.kind == NAVIGATE, self.starts_from[:, self.region], regions == self.region)
+            object.__setattr__(self, "open_from", open_from[None])
 
     @property
     def n(self) -> int:
         return len(self.names)
 
-    def can_initiate(self, agent_region: jax.Array, triaged: jax.Array) -> jax.Array:
-        """bool[O]: options whose initiation set holds for an agent in ``agent_region``."""
-        may_go = jnp.asarray(self.starts_from)[agent_region, jnp.asarray(self.region)]
-        victim_open = ~triaged[jnp.maximum(jnp.asarray(self.victim), 0)]
-        in_room = agent_region == jnp.asarray(self.region)
-        return jnp.where(jnp.asarray(self.kind) == NAVIGATE, may_go, in_room & victim_open)
+    @property
+    def role(self) -> np.ndarray:
+        """int32[O]: the role an option is for (MEDIC: TRIAGE, ENGINEER: CLEAR), -1: any (NAVIGATE)."""
+        return np.select([self.kind == TRIAGE, self.kind == CLEAR], [MEDIC, ENGINEER], -1).astype(np.int32)
 
-    def terminated(self, option: jax.Array, agent_region: jax.Array, triaged: jax.Array) -> jax.Array:
+    def can_initiate(self, agent_region: jax.Array, triaged: jax.Array, config: jax.Array = 0,
+                     role: jax.Array = MEDIC) -> jax.Array:
+        """bool[O]: options whose initiation set holds for an agent of ``role`` in ``agent_region``, with
+        the groups of ``config`` cleared."""
+        kind, role_of = jnp.asarray(self.kind), jnp.asarray(self.role)
+        victim_open = ~triaged[jnp.maximum(jnp.asarray(self.victim), 0)]
+        group_open = ((config >> jnp.maximum(jnp.asarray(self.group), 0)) & 1) == 0
+        ok = jnp.asarray(self.open_from)[config, agent_region] & ((role_of < 0) | (role_of == role))
+        ok = ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, True))
+        n_configs = self.open_from.shape[0]
+        return ok & ((role != ENGINEER) | (config != n_configs - 1))  # an engineer with nothing to clear idles
+
+    def terminated(self, option: jax.Array, agent_region: jax.Array, triaged: jax.Array,
+                   config: jax.Array = 0) -> jax.Array:
         """bool: option ``option`` (an index) has reached its termination condition."""
-        kind, region, victim = (jnp.asarray(a)[option] for a in (self.kind, self.region, self.victim))
-        return jnp.where(kind == NAVIGATE, agent_region == region, triaged[jnp.maximum(victim, 0)])
+        kind, region, victim, group = (jnp.asarray(a)[option] for a in (self.kind, self.region, self.victim, self.group))
+        return jnp.select([kind == NAVIGATE, kind == TRIAGE],
+                          [agent_region == region, triaged[jnp.maximum(victim, 0)]],
+                          ((config >> jnp.maximum(group, 0)) & 1) == 1)
 
 
 def room_label(name: str) -> str:
@@ -82,7 +181,9 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
 NAVIGATIONS = ("adjacent", "chained", "goal")
 
 
-def options_from_graph(graph: RegionGraph, navigation: str = "adjacent") -> Options:
+def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=None) -> Options:
+    """The options of a map's region graph; with ``env`` (a ``USAREnv``) that holds rubble, also its
+    CLEAR options and the rubble-aware ``open_from`` (module doc)."""
     if navigation not in NAVIGATIONS:
         raise ValueError(f"navigation {navigation!r}: one of {NAVIGATIONS}")
     names, kind, region, victim = [], [], [], []
@@ -100,5 +201,53 @@ def options_from_graph(graph: RegionGraph, navigation: str = "adjacent") -> Opti
             names.append(f"TRIAGE-VICTIM-{v}-IN-{room_label(room)}")
         kind.append(TRIAGE), region.append(int(r)), victim.append(v)
     starts_from = graph.adjacency if navigation == "adjacent" else next_hop(graph.adjacency) >= 0
-    return Options(tuple(names), np.asarray(kind, np.int32), np.asarray(region, np.int32),
-                   np.asarray(victim, np.int32), starts_from)
+    plain = Options(tuple(names), np.asarray(kind, np.int32), np.asarray(region, np.int32),
+                    np.asarray(victim, np.int32), starts_from)
+    return plain if env is None or not env.has_rubble else _with_rubble(plain, graph, env)
+
+
+def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
+    """``plain`` with a CLEAR option per rubble group and ``open_from`` per config (module doc)."""
+    from jaxusar.planning import steps_to_goal
+
+    rubble = Rubble.of(env.layout)
+    if rubble.n_cells > MAX_RUBBLE_CELLS:
+        raise ConfigError(f"map {env.layout.name!r} has {rubble.n_cells} rubble cells: the hierarchical method's "
+                          f"sub-policies handle at most {MAX_RUBBLE_CELLS} (they see each cell cleared or not)")
+    region = graph.cell_region
+    near = np.zeros(env.layout.shape, np.int32) - 1  # the group a cell holds or touches (-1: none)
+    touches = np.zeros((graph.n_regions, rubble.n_groups), bool)
+    for (r, c), g in zip(rubble.cells, rubble.group):
+        for dr, dc in ((0, 0), (0, 1), (1, 0), (0, -1), (-1, 0)):
+            i, j = r + dr, c + dc
+            if 0 <= i < region.shape[0] and 0 <= j < region.shape[1] and region[i, j] >= 0:
+                touches[region[i, j], g] = True
+                near[i, j] = g if (dr, dc) != (0, 0) and not env.layout.rubble[i, j] else near[i, j]
+    names = plain.names + tuple(f"CLEAR-RUBBLE-{g}" for g in range(rubble.n_groups))
+    kind = np.concatenate([plain.kind, np.full(rubble.n_groups, CLEAR, np.int32)])
+    opt_region = np.concatenate([plain.region, np.full(rubble.n_groups, -1, np.int32)])
+    victim = np.concatenate([plain.victim, np.full(rubble.n_groups, -1, np.int32)])
+    group = np.concatenate([np.full(plain.n, -1, np.int32), np.arange(rubble.n_groups, dtype=np.int32)])
+    no_victim = np.full(env.layout.shape, -1, np.int32)
+    open_from = np.zeros((rubble.n_configs, graph.n_regions, len(names)), bool)
+    for config in range(rubble.n_configs):
+        solid = env._solid | rubble.uncleared_in_config(config)
+        open_cells = ~solid & (region >= 0)
+
+        def from_all_cells(dist):  # bool[R]: every open cell of the region (there is one) reaches the goal
+            ok = (dist >= 0).all(-1) | ~open_cells
+            return np.array([open_cells[region == q].any() and ok[region == q].all() for q in range(graph.n_regions)])
+
+        for o in range(len(names)):
+            if kind[o] == NAVIGATE:
+                dist = steps_to_goal(solid, no_victim, goal_region_mask=region == opt_region[o])
+                open_from[config, :, o] = plain.starts_from[:, opt_region[o]] & from_all_cells(dist)
+            elif kind[o] == TRIAGE:
+                target = no_victim.copy()
+                target[tuple(env.layout.victim_pos[victim[o]])] = 0  # the planner triages victim 0
+                reach = from_all_cells(steps_to_goal(solid, target, triage=True))
+                open_from[config, opt_region[o], o] = reach[opt_region[o]]
+            else:
+                reach = from_all_cells(steps_to_goal(solid, no_victim, goal_region_mask=(near == group[o]) & ~solid))
+                open_from[config, :, o] = touches[:, group[o]] & reach
+    return Options(names, kind, opt_region, victim, plain.starts_from, group, open_from, rubble)

@@ -32,12 +32,19 @@ at an initiation state from which the latest test's greedy policy was not optima
 (``SubtaskEnv.refocus``): the few hall cells a policy still gets wrong are otherwise a start once in
 hundreds of episodes (measured: benchmarks/README.md, "Starts where the last test failed").
 
+Rubble (contract part 2): CLEAR-g, an engineer's task, starts anywhere in the regions that hold or
+touch group g and ends when every cell of g is cleared (+100). Every task on a map with rubble runs in
+each *mode* (the bitmask of rubble cells cleared; ``options.Rubble``), rubble not yet cleared solid, and
+its states are those from which its goal can be reached in their mode: the coordinator may start any
+option between two clearings, so the sub-policies are trained and judged exact over all of them.
+
 Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
-(the task's victim triaged; 0 for NAVIGATE), and with ``goal`` navigation a one-hot of the goal
+(the task's victim triaged; 0 for NAVIGATE), on a map with rubble a flag per rubble cell (cleared), and
+with ``goal`` navigation a one-hot of the goal
 (the first for every other task), so all tasks x all trials stack into one vmapped batch; the per-task
 map data (cells blocked, the task's victim, its goals, start states, discount, the exact distance to
-each goal from every state) travel as env params. A task's states are (row, col, facing, goal index);
-every task but the goal-conditioned one has a single goal, index 0. The discount is per task (paper Fig. 4f: the
+each goal from every state) travel as env params. A task's states are (row, col, facing, index), the index being goal index x modes + mode;
+every task but the goal-conditioned one has a single goal, index 0, and a map without rubble one mode. The discount is per task (paper Fig. 4f: the
 triage-bottom task needed gamma 0.9), stored in each replay row.
 """
 
@@ -51,10 +58,10 @@ import numpy as np
 from flax import struct
 
 from jaxusar import planning
-from jaxusar.algos.options import NAVIGATE, Options, next_hop, room_label
+from jaxusar.algos.options import CLEAR, NAVIGATE, Options, Rubble, next_hop, room_label
 from jaxusar.config import ConfigError, DQNConfig
 from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
-from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, EnvState, USAREnv, apply_actions
+from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, TRIAGE, EnvState, USAREnv, apply_actions
 
 SUCCESS_REWARD, STEP_REWARD = 100.0, -1.0
 
@@ -70,6 +77,7 @@ class Task:
     region: int           # the region to reach (NAVIGATE), -1 for TRIAGE and goal-conditioned navigation
     victim: int           # the victim to triage (TRIAGE), -1 for NAVIGATE
     goals: tuple[int, ...] = ()  # goal-conditioned navigation: the region of each goal index
+    clears: int = 0       # CLEAR: the mode bits of its rubble group (done when all are cleared); 0 otherwise
 
     @property
     def goal_regions(self) -> tuple[int, ...]:
@@ -92,6 +100,7 @@ class TaskParams:
     n_initiation: jax.Array
     dist: jax.Array         # int32[G, H, W, 4]: optimal steps from each state to each goal's sub-goal
     gamma: jax.Array        # float32
+    clears: jax.Array       # int32: the mode bits a CLEAR task clears (0: not a CLEAR task)
     weak: jax.Array         # bool[K]: the initiation states the latest test's greedy policy was not optimal
                             # from (``SubtaskEnv.refocus``); False on padding
 
@@ -130,16 +139,31 @@ def _states(env: USAREnv, regions: np.ndarray, goal: int = 0) -> np.ndarray:
                     np.int32).reshape(-1, 4)
 
 
+def _in_modes(rubble: Rubble, states: np.ndarray, clears: int = 0) -> np.ndarray:
+    """``states`` in every mode of ``rubble`` (column 3: goal index x modes + mode), without the cells a
+    mode's rubble covers; ``clears``: only the modes where those bits are not all set. No rubble: as given."""
+    if not rubble.n_cells:
+        return states
+    rows = []
+    for m in range(rubble.n_modes):
+        if clears and (m & clears) == clears:
+            continue
+        kept = states[~np.asarray(rubble.uncleared(m))[states[:, 0], states[:, 1]]].copy()
+        kept[:, 3] = kept[:, 3] * rubble.n_modes + m
+        rows.append(kept)
+    return np.concatenate(rows)
+
+
 def _navigation_task(env: USAREnv, name: str, goal: int, option: int, agent: int, navigate_start: str) -> Task:
     """NAVIGATE to region ``goal`` from every open cell of the regions adjacent to it (victims' cells
     aside), any facing; ``agent`` >= 0: training and tests use that medic's start (see the module doc)."""
-    layout = env.layout
-    initiation = _states(env, env.graph.adjacency[:, goal])
+    layout, rubble = env.layout, Rubble.of(env.layout)
+    initiation = _in_modes(rubble, _states(env, env.graph.adjacency[:, goal]))
     if agent < 0:
         return Task(name, option, agent, initiation, initiation, initiation, goal, -1)
-    start = np.array([[*layout.agent_start[agent], env.start_dir, 0]], np.int32)
+    start = _in_modes(rubble, np.array([[*layout.agent_start[agent], env.start_dir, 0]], np.int32))
     starts = initiation if navigate_start == "initiation" else \
-        np.concatenate([np.repeat(start, len(initiation), 0), initiation])  # 1:1 mixture
+        np.concatenate([np.resize(start, (len(initiation), 4)), initiation])  # 1:1 mixture
     return Task(name, option, agent, starts, start, initiation, goal, -1)
 
 
@@ -153,11 +177,12 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
     region; ``chained``: one task per region that is a hop of some shortest region path to a room
     (``options.next_hop``), shared by all medics, trained and tested from anywhere in its initiation
     set; a NAVIGATE option chains them (``policy_table``). Their number is at most the regions'."""
-    layout, graph = env.layout, env.graph
+    layout, graph, rubble = env.layout, env.graph, Rubble.of(env.layout)
     tasks = []
     if navigation == "goal":
         goals = tuple(int(options.region[o]) for o in np.flatnonzero(options.kind == NAVIGATE))
-        initiation = np.concatenate([_states(env, options.starts_from[:, r], g) for g, r in enumerate(goals)])
+        initiation = _in_modes(rubble, np.concatenate([_states(env, options.starts_from[:, r], g)
+                                                        for g, r in enumerate(goals)]))
         if len(initiation):  # else a one-region map: nowhere to navigate from
             tasks.append(Task("NAVIGATE-TO-ANY-ROOM", -1, -1, initiation, initiation, initiation, -1, -1, goals))
     if navigation == "chained":
@@ -168,7 +193,12 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             name = options.names[o] if o >= 0 else f"NAVIGATE-TO-{room_label(graph.names[g])}"
             tasks.append(_navigation_task(env, name, g, o, -1, navigate_start))
     for o in range(options.n):
-        if options.kind[o] == NAVIGATE:
+        if options.kind[o] == CLEAR:
+            g = int(options.group[o])
+            clears = int(rubble.group_bits[g])
+            initiation = _in_modes(rubble, _states(env, options.open_from[:, :, o].any(0)), clears)
+            tasks.append(Task(options.names[o], o, -1, initiation, initiation, initiation, -1, -1, clears=clears))
+        elif options.kind[o] == NAVIGATE:
             if navigation != "adjacent":
                 continue
             for i, (r, c) in enumerate(layout.agent_start):
@@ -181,10 +211,38 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             in_room = [tuple(x) for x in np.argwhere(graph.cell_region == room) if tuple(x) != victim_cell]
             cells = in_room if triage_start == "room" else \
                 [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
-            starts = np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32)
-            initiation = np.array([[r, c, d, 0] for r, c in in_room for d in range(4)], np.int32)
+            starts = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32))
+            initiation = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in in_room for d in range(4)], np.int32))
             tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, int(options.victim[o])))
+    if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
+        tasks = [_reachable(env, t) for t in tasks]
     return tasks
+
+
+def _reachable(env: USAREnv, t: Task) -> Task:
+    """``t`` without the states from which its goal cannot be reached (in their mode)."""
+    dist = _task_arrays(env, t)[3]
+    keep = lambda a: a[dist[a[:, 3], a[:, 0], a[:, 1], a[:, 2]] >= 0]
+    return dataclasses.replace(t, starts=keep(t.starts), test_starts=keep(t.test_starts),
+                               initiation=keep(t.initiation))
+
+
+def _task_arrays(env: USAREnv, t: Task):
+    """(solid, victim_at, goal regions, dist) of task ``t``: dist int32[goals x modes, H, W, 4], the fewest
+    steps from each state to the task's end (-1: never), by the planner in each mode."""
+    layout, region, rubble = env.layout, env.graph.cell_region, Rubble.of(env.layout)
+    victim_at = np.full(layout.shape, -1, np.int32)
+    solid = layout.blocked.copy()
+    if t.victim >= 0:
+        cell = tuple(layout.victim_pos[t.victim])
+        victim_at[cell], solid[cell] = 0, True
+    goals = np.asarray(t.goal_regions, np.int32)
+    if t.clears:
+        return solid, victim_at, goals, planning.steps_to_clear(solid, rubble.cells, t.clears)
+    dist = [planning.steps_to_goal(solid | np.asarray(rubble.uncleared(m)), victim_at,
+                                   goal_region_mask=(region == g) if g >= 0 else None, triage=g < 0)
+            for g in goals for m in range(rubble.n_modes)]
+    return solid, victim_at, goals, np.stack(dist)
 
 
 def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: str = "adjacent") -> np.ndarray:
@@ -205,8 +263,11 @@ def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: 
                 if hop[q, options.region[o]] >= 0:
                     table[:, q, o] = task_to[int(hop[q, options.region[o]])]
     for k, t in enumerate(tasks):
-        if t.option >= 0 and (t.victim >= 0 or navigation == "adjacent"):
+        if t.option >= 0 and (t.victim >= 0 or t.clears or navigation == "adjacent"):
             table[[t.agent] if t.agent >= 0 else slice(None), :, t.option] = k
+    role = options.role  # TRIAGE for medics, CLEAR for engineers
+    wrong = (role >= 0)[None] & (role[None] != env.roles[:, None])  # [n_agents, O]
+    table[np.broadcast_to(wrong[:, None], table.shape)] = -1
     return table
 
 
@@ -226,20 +287,16 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
         raise ConfigError(f"hierarchical.task_gamma names task(s) {unknown} that map {env.layout.name!r} does not have "
                           f"(its tasks: {', '.join(t.name for t in tasks)}); name one of those, or drop them with "
                           "--set 'hierarchical.task_gamma={}'")
-    layout, region = env.layout, env.graph.cell_region
     pad = lambda a, n: np.concatenate([a, np.repeat(a[:1], n - len(a), 0)])
     width = {k: max(len(getattr(t, k)) for t in tasks) for k in ("starts", "test_starts", "initiation")}
     n_goals = max(len(t.goal_regions) for t in tasks)
+    n_modes = Rubble.of(env.layout).n_modes
     rows = []
     for t in tasks:
-        victim_at = np.full(layout.shape, -1, np.int32)
-        solid = layout.blocked.copy()
-        if t.victim >= 0:
-            cell = tuple(layout.victim_pos[t.victim])
-            victim_at[cell], solid[cell] = 0, True
-        goals = pad(np.asarray(t.goal_regions, np.int32), n_goals)
-        dist = np.stack([planning.steps_to_goal(solid, victim_at, goal_region_mask=(region == g) if g >= 0 else None,
-                                                triage=g < 0) for g in goals])
+        if not len(t.initiation):
+            raise ConfigError(f"task {t.name}: no state of its initiation set can reach its sub-goal")
+        solid, victim_at, goals, dist = _task_arrays(env, t)
+        goals, dist = pad(goals, n_goals), pad(dist, n_goals * n_modes)
         for k in ("test_starts", "initiation"):
             states = getattr(t, k)
             if np.any(dist[states[:, 3], states[:, 0], states[:, 1], states[:, 2]] < 0):
@@ -248,7 +305,7 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
         rows.append(dict(solid=solid, victim_at=victim_at, goal_region=goals,
                          **{k: pad(getattr(t, k), width[k]) for k in width},
                          **{"n_" + k: np.int32(len(getattr(t, k))) for k in width},
-                         dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma)),
+                         dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma)), clears=np.int32(t.clears),
                          weak=np.zeros(width["initiation"], bool)))
     return TaskParams(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
 
@@ -270,13 +327,16 @@ class SubtaskEnv:
         self.focus = float(focus)
         self.region = env.graph.cell_region
         self.features, self.n_goals = features, int(n_goals)
+        self.rubble = Rubble.of(env.layout)
+        self.n_modes = self.rubble.n_modes
         self.obs_blocks = (self.height, self.width, 4, 1) + ((self.height * self.width,) if features == "cell" else ()) \
-            + ((self.n_goals,) if self.n_goals else ())
+            + (1,) * self.rubble.n_cells + ((self.n_goals,) if self.n_goals else ())
         self.obs_dim = sum(self.obs_blocks)
 
     def observe(self, pos: jax.Array, direction: jax.Array, flag: jax.Array, goal: jax.Array = 0) -> jax.Array:
         """One agent's features (float32[obs_dim]): one-hot row, col, dir, the task's victim flag, with
-        ``features = "cell"`` a one-hot of the cell, and with ``n_goals`` a one-hot of the goal index. The
+        ``features = "cell"`` a one-hot of the cell, on a map with rubble each rubble cell's cleared flag
+        (``goal``'s mode), and with ``n_goals`` a one-hot of the goal index (``goal`` // modes). The
         cell one-hot gives every cell weights of its own, so the Q-function need not be composed from row
         and column alone (it is fitted to the 1-step precision optimality needs in far fewer updates:
         benchmarks/README.md)."""
@@ -284,6 +344,10 @@ class SubtaskEnv:
                  jax.nn.one_hot(direction, 4), jnp.asarray(flag, jnp.float32)[None]]
         if self.features == "cell":
             parts.append(jax.nn.one_hot(pos[0] * self.width + pos[1], self.height * self.width))
+        if self.rubble.n_cells:
+            mode = goal % self.n_modes
+            parts.append(((mode >> jnp.arange(self.rubble.n_cells)) & 1).astype(jnp.float32))
+            goal = goal // self.n_modes
         if self.n_goals:
             parts.append(jax.nn.one_hot(goal, self.n_goals))
         return jnp.concatenate(parts)
@@ -315,17 +379,31 @@ class SubtaskEnv:
         return self._obs(s), s
 
     def _transition(self, pos, direction, action, goal, p: TaskParams):
-        """One step of the task's rules from one state: (pos int32[2], dir, triaged, success)."""
-        pos, d, triaged, _ = apply_actions(p.solid, p.victim_at, pos[None], direction[None], jnp.zeros((1,), bool),
+        """One step of the task's rules from one state: (pos int32[2], dir, triaged, success, index). With
+        rubble: the mode's uncleared cells are solid, and a CLEAR task's TRIAGE facing one clears it."""
+        solid, mode, k = p.solid, 0, self.rubble.n_cells
+        if k:
+            mode = goal % self.n_modes
+            solid = solid | self.rubble.uncleared(mode)
+        new, d, triaged, _ = apply_actions(solid, p.victim_at, pos[None], direction[None], jnp.zeros((1,), bool),
                                            action[None])
-        target = p.goal_region[goal]
-        reached = (target >= 0) & (jnp.asarray(self.region)[pos[0, 0], pos[0, 1]] == target)
-        return pos[0], d[0], triaged[0], reached | triaged[0]
+        target = p.goal_region[goal // self.n_modes]
+        success = triaged[0] | (target >= 0) & (jnp.asarray(self.region)[new[0, 0], new[0, 1]] == target)
+        if k:
+            front = pos + jnp.asarray(DIR_DELTA)[direction]
+            inside = (front >= 0).all() & (front[0] < self.height) & (front[1] < self.width)
+            front = jnp.clip(front, 0, jnp.array([self.height - 1, self.width - 1]))
+            cell = jnp.asarray(self.rubble.index)[front[0], front[1]]
+            clear = (p.clears != 0) & (action == TRIAGE) & inside & (cell >= 0) & (((mode >> jnp.maximum(cell, 0)) & 1) == 0)
+            cleared = jnp.where(clear, mode | (1 << jnp.maximum(cell, 0)), mode)
+            success = success | (p.clears != 0) & ((cleared & p.clears) == p.clears)
+            goal = goal - mode + cleared
+        return new[0], d[0], triaged[0], success, goal
 
     def step(self, key, s: SubtaskState, action, p: TaskParams):
-        pos, d, triaged, success = self._transition(s.agent_pos[0], s.agent_dir[0], action[0], s.goal, p)
+        pos, d, triaged, success, goal = self._transition(s.agent_pos[0], s.agent_dir[0], action[0], s.goal, p)
         env = EnvState(agent_pos=pos[None], agent_dir=d[None], triaged=s.triaged | triaged, t=s.t + 1)
-        s = s.replace(env=env)
+        s = s.replace(env=env, goal=goal)
         reward = jnp.where(success, SUCCESS_REWARD, 0.0) + STEP_REWARD
         done = success | (s.t >= self.horizon)
         return self._obs(s), s, reward, done, {"terminated": success, "gamma": p.gamma}
@@ -346,32 +424,44 @@ class SubtaskEnv:
         state's does not.
         """
         h, w = self.height, self.width
-        rows, cols, dirs = (x.ravel() for x in jnp.meshgrid(jnp.arange(h), jnp.arange(w), jnp.arange(4),
-                                                               indexing="ij"))
-        pos = jnp.stack([rows, cols], -1)
+        n_index = p.dist.shape[0]
+        pos, dirs = self._poses()
 
-        def good_for(goal):  # bool[H * W * 4]
-            obs = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(pos, dirs, jnp.zeros_like(rows, jnp.float32), goal)
-            action = jax.vmap(greedy)(obs)[:, 0]
-            npos, ndir, _, success = jax.vmap(self._transition, in_axes=(0, 0, 0, None, None))(pos, dirs, action,
-                                                                                               goal, p)
-            nxt = (npos[:, 0] * w + npos[:, 1]) * 4 + ndir
-            dist = p.dist[goal].reshape(-1)
-            closer = dist[nxt] == dist - 1
+        def actions_for(goal):  # int32[H * W * 4]: the greedy action in every pose, at index ``goal``
+            obs = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(pos, dirs, jnp.zeros_like(dirs, jnp.float32), goal)
+            return jax.vmap(greedy)(obs)[:, 0]
 
-            def body(c):
-                good, _ = c
-                new = success | (closer & good[nxt])
-                return new, jnp.any(new != good)
+        actions = actions_for(0)[None] if n_index == 1 else jax.lax.map(actions_for, jnp.arange(n_index))
+        nxt, success = self._successors(actions, p)
+        dist = p.dist.reshape(-1)
+        closer = dist[nxt] == dist - 1
 
-            return jax.lax.while_loop(lambda c: c[1], body, (success, jnp.ones((), bool)))[0]
+        def body(c):
+            good, _ = c
+            new = success | (closer & good[nxt])
+            return new, jnp.any(new != good)
 
-        n_goals = p.dist.shape[0]
-        good = good_for(0)[None] if n_goals == 1 else jax.lax.map(good_for, jnp.arange(n_goals))  # [G, H*W*4]
+        good = jax.lax.while_loop(lambda c: c[1], body, (success, jnp.ones((), bool)))[0]  # over every index
         init = p.initiation
-        flat = (init[:, 0] * w + init[:, 1]) * 4 + init[:, 2]
-        good = good[init[:, 3], flat] & (jnp.arange(init.shape[0]) < p.n_initiation)
+        flat = ((init[:, 3] * h + init[:, 0]) * w + init[:, 1]) * 4 + init[:, 2]
+        good = good[flat] & (jnp.arange(init.shape[0]) < p.n_initiation)
         return jnp.sum(good) / p.n_initiation.astype(jnp.float32), good
+
+    def _poses(self):
+        """Every (row, col) int32[H * W * 4, 2] and dir, in the flat pose order."""
+        rows, cols, dirs = (x.ravel() for x in jnp.meshgrid(jnp.arange(self.height), jnp.arange(self.width),
+                                                               jnp.arange(4), indexing="ij"))
+        return jnp.stack([rows, cols], -1), dirs
+
+    def _successors(self, actions: jax.Array, p: TaskParams):
+        """(next int32[I * H * W * 4], success bool[...]): the flat next state (index, row, col, dir) and the
+        task's end, of ``actions`` int32[I, H * W * 4] taken in every state of each index."""
+        pos, dirs = self._poses()
+        step = jax.vmap(self._transition, in_axes=(0, 0, 0, None, None))
+        npos, ndir, _, success, goal = jax.vmap(step, in_axes=(None, None, 0, 0, None))(
+            pos, dirs, actions, jnp.arange(actions.shape[0]), p)
+        nxt = ((goal * self.height + npos[..., 0]) * self.width + npos[..., 1]) * 4 + ndir
+        return nxt.reshape(-1), success.reshape(-1)
 
 
 def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
@@ -385,22 +475,28 @@ def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
 
 def exact_subpolicies(senv: SubtaskEnv, params: TaskParams):
     """Exact sub-policies from the planner's distance tables: ``(act, tables)`` with ``tables``
-    int32[tasks, H, W, 4] a shortest-path action per state (TRIAGE where it finishes the task) and
-    ``act(table, obs) -> action[1]`` reading (row, col, facing) and the goal index off an observation of
-    ``senv``. In
-    ``MacroEnv``'s place of trained ones, they isolate the coordinator (tests, benchmarks/coordinators.py)."""
+    int32[tasks, I, H, W, 4] a shortest-path action per state (the action that ends the task where one
+    does; ties to the lowest) and ``act(table, obs) -> action[1]`` reading (row, col, facing), the
+    rubble flags and the goal index off an observation of ``senv``. In ``MacroEnv``'s place of trained
+    ones, they isolate the coordinator (tests, benchmarks/coordinators.py)."""
     tables = []
     for k in range(len(params.dist)):
-        nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
-                                                                                jnp.asarray(params.victim_at[k])))
-        after = params.dist[k][:, nxt[..., 0], nxt[..., 1], nxt[..., 2]]  # [G, H, W, 4, actions]
-        reached = hit | ((params.goal_region[k] >= 0)[:, None, None, None, None] & (after == 0))
-        tables.append(np.argmin(np.where(reached, -1, np.where(after < 0, 10_000, after)), -1).astype(np.int32))
-    h, w, n_goals = senv.height, senv.width, senv.n_goals
+        p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+        n_index, shape = p.dist.shape[0], p.dist.shape
+        after, success = [], []
+        for a in range(N_ACTIONS):
+            nxt, done = senv._successors(jnp.full((n_index, shape[1] * shape[2] * 4), a, jnp.int32), p)
+            after.append(np.asarray(p.dist).reshape(-1)[np.asarray(nxt)]), success.append(np.asarray(done))
+        after, success = np.stack(after, -1), np.stack(success, -1)
+        best = np.where(success, -1, np.where(after < 0, 10_000, after))
+        tables.append(np.argmin(best, -1).astype(np.int32).reshape(shape))
+    h, w, n_goals, n_cells = senv.height, senv.width, senv.n_goals, senv.rubble.n_cells
+    flags = h + w + 4 + 1 + (h * w if senv.features == "cell" else 0)  # where the rubble flags start
 
     def act(table, obs):
         r, c, d = jnp.argmax(obs[:h]), jnp.argmax(obs[h:h + w]), jnp.argmax(obs[h + w:h + w + 4])
         goal = jnp.argmax(obs[-n_goals:]) if n_goals else 0  # the goal one-hot is the last block
-        return table[goal, r, c, d].reshape(1)
+        mode = jnp.sum(obs[flags:flags + n_cells].astype(jnp.int32) << jnp.arange(n_cells)) if n_cells else 0
+        return table[goal * senv.n_modes + mode, r, c, d].reshape(1)
 
     return act, jnp.asarray(np.stack(tables))

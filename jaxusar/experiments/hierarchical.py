@@ -49,7 +49,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     env = envs.make(cfg.env.map, **cfg.env.overrides())
     check_supported(env)
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
-    options = options_from_graph(env.graph, h.navigation)
+    options = options_from_graph(env.graph, h.navigation, env)
     if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
         raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
                           f"{options.n ** env.n_agents:,} joint options ({options.n} options ^ {env.n_agents} medics), more than "
@@ -92,11 +92,10 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
 
 
 def unsupported_features(env) -> list[str]:
-    """The features of ``env`` (contract part 2) that the paper's options, sub-policies and coordinator do
-    not model: its TRIAGE options end at a one-action triage of a victim known from the start, no agent
-    clears rubble, and the coordinator sees every victim's triaged flag."""
-    missing = [("rubble", env.has_rubble), ("engineers", env.has_engineers),
-               ("victims drawn at reset", env.n_drawn > 0), ("multi-step triage", env.multi_step),
+    """The features of ``env`` (contract part 2) that the options, sub-policies and coordinator do not
+    model yet: TRIAGE options end at a one-action triage of a victim known from the start, and the
+    coordinator sees every victim's triaged flag. (Rubble and engineers they do: CLEAR options.)"""
+    missing = [("victims drawn at reset", env.n_drawn > 0), ("multi-step triage", env.multi_step),
                ("expiring critical victims", env.expires),
                ("partial observability (observation=view)", env.observation == "view")]
     return [name for name, present in missing if present]
@@ -127,14 +126,14 @@ def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> N
 def auto_option_timeout(env, options, tasks, params) -> int:
     """``coordinator.option_timeout: 0``: 1.5x the longest shortest path of any option from any state it
     may start in (a chained NAVIGATE across the map included), at least 50 steps (two_rooms: 50)."""
-    longest, region = 0, env.graph.cell_region
+    longest, region, modes = 0, env.graph.cell_region, len(params.dist[0]) // len(params.goal_region[0])
     for k, t in enumerate(tasks):
-        if t.victim >= 0:
+        if t.victim >= 0 or t.clears:
             longest = max(longest, int(params.dist[k][tuple(t.initiation[:, [3, 0, 1, 2]].T)].max()))
         elif t.option >= 0 or t.goals:  # a NAVIGATE option's task: its table is the room's distance from anywhere
             for g, room in enumerate(t.goal_regions):
                 starts = options.starts_from[np.maximum(region, 0), room] & (region >= 0)
-                longest = max(longest, int(params.dist[k][g][starts].max()))
+                longest = max(longest, int(params.dist[k][g * modes:(g + 1) * modes][:, starts].max()))
     return max(50, -(-3 * longest // 2))
 
 
@@ -417,9 +416,9 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     states, rewards, decisions = team_episode(b["macro"], b["coord_learner"],
                                               jax.tree.map(lambda x: x[j], co["best_params"]),
                                               jax.tree.map(lambda x: jnp.asarray(x[j]), best_sub))
-    from jaxusar.envs.render import save_episode_strip
+    from jaxusar.envs.render import ROLE_WORDS, save_episode_strip
 
-    plan = "   ".join(f"{i + 1}) " + ", ".join(f"medic {a}: {o}" for a, o in enumerate(d[:-1]))
+    plan = "   ".join(f"{i + 1}) " + ", ".join(f"{ROLE_WORDS[env.roles[a]]} {a}: {o}" for a, o in enumerate(d[:-1]))
                        + ("" if d[-1] else " (invalid)") for i, d in enumerate(decisions))
     if len(plan) > TITLE_PLAN_CHARS:  # a long plan made a title of several lines wider than the frames
         plan = f"{len(decisions)} decisions, listed in metrics.json (best_trial)"

@@ -23,7 +23,7 @@ size (``bounds.py``). ``team_reference(env)``: what training measures teams agai
 
 from jaxusar.planning.bounds import StateBounds, episode_lower_bound, team_lower_bound, team_return_bound
 from jaxusar.planning.distances import (
-    _fixed_point, _pose_index, _single_agent_successors, pose_distances, steps_to_goal,
+    _fixed_point, _pose_index, _single_agent_successors, pose_distances, steps_to_clear, steps_to_goal,
 )
 from jaxusar.planning.optimal import optimal_team_plan, optimal_team_return, optimal_team_steps, return_search_exact
 from jaxusar.planning.reference import (
@@ -35,7 +35,7 @@ from jaxusar.planning.search import (
 )
 
 __all__ = [
-    "optimal_team_steps", "optimal_team_plan", "optimal_team_return", "agent_distances", "steps_to_goal",
+    "optimal_team_steps", "optimal_team_plan", "optimal_team_return", "agent_distances", "steps_to_goal", "steps_to_clear",
     "pose_distances", "team_lower_bound", "episode_lower_bound", "team_return_bound", "StateBounds",
     "team_reference", "clairvoyant_reference", "fixed_victims", "in_reach", "return_search_exact", "joint_states_bound",
     "SEARCH_MAX_BOUND", "PRUNED_SEARCH_MAX_BOUND", "CLAIRVOYANT_MAX_STATES", "Unreachable", "SearchTooLarge",

@@ -81,3 +81,41 @@ def pose_distances(env, targets: np.ndarray) -> np.ndarray:
     dist = np.full((len(targets), succ.shape[0]), UNREACHABLE, np.int64)
     dist[np.arange(len(targets)), targets] = 0
     return _fixed_point(dist, lambda d: 1 + d[:, succ].min(-1))
+
+
+def steps_to_clear(solid: np.ndarray, rubble_cells: np.ndarray, bits: int) -> np.ndarray:
+    """int32[M, H, W, 4]: fewest steps for one engineer alone to clear the rubble cells of mask ``bits``
+    from every (mode, row, col, dir); -1 = never (or a cell solid in that mode), 0 where they are cleared.
+
+    A mode is the bitmask of ``rubble_cells`` int[K, 2] cleared (M = 2^K); a cell not cleared is solid,
+    and TRIAGE facing it clears it (the contract's engineer tool). Exact: the fixed point of
+    dist = min_a 1 + dist[next] over all modes at once, the clearing actions crossing modes."""
+    h, w = solid.shape
+    n_cells = len(rubble_cells)
+    n_modes, poses = 2 ** n_cells, h * w * 4
+    no_victim = jnp.full((h, w), -1, jnp.int32)
+    index = np.full((h, w), -1, np.int64)
+    index[tuple(np.asarray(rubble_cells).T)] = np.arange(n_cells)
+    rows, cols, dirs = np.meshgrid(np.arange(h), np.arange(w), np.arange(4), indexing="ij")
+    from jaxusar.envs.usar import DIR_DELTA, TRIAGE
+
+    fr, fc = rows + DIR_DELTA[dirs, 0], cols + DIR_DELTA[dirs, 1]
+    inside = (fr >= 0) & (fr < h) & (fc >= 0) & (fc < w)
+    front = np.where(inside, index[np.clip(fr, 0, h - 1), np.clip(fc, 0, w - 1)], -1).reshape(-1)
+    succ, covered = [], []
+    for m in range(n_modes):
+        rubble = (index >= 0) & ~((m >> np.maximum(index, 0)) & 1).astype(bool)
+        nxt = np.asarray(_single_agent_successors(jnp.asarray(solid | rubble), no_victim)[0])
+        s = m * poses + _pose_index(w, nxt[..., 0], nxt[..., 1], nxt[..., 2]).reshape(poses, N_ACTIONS)
+        k = np.maximum(front, 0)
+        clears = (front >= 0) & ~((m >> k) & 1).astype(bool)
+        s[clears, TRIAGE] = (m | (1 << k[clears])) * poses + np.arange(poses)[clears]
+        succ.append(s)
+        covered.append(np.repeat((solid | rubble).reshape(-1), 4))
+    succ, covered = np.concatenate(succ), np.concatenate(covered)
+    inf = np.iinfo(np.int32).max // 2
+    done = np.repeat((np.arange(n_modes) & bits) == bits, poses)
+    dist = np.where(done, 0, inf).astype(np.int64)
+    dist = _fixed_point(dist, lambda d: 1 + d[succ].min(-1))
+    dist[covered] = -1
+    return np.where(dist >= inf, -1, dist).astype(np.int32).reshape(n_modes, h, w, 4)
