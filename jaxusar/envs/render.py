@@ -54,7 +54,7 @@ GRID = "#d9d9d9"
 AGENT_COLOURS = (MEDIC, "#f57c00", "#9b2fc9", "#0a9bb5", "#e8409a", "#1b2a6b", "#b38f00", "#606060")
 # region tints of a map picture: warm and violet pastels, none near the victims' green or the medics' blue
 ROOM_TINTS = ("#f4a582", "#d6a5c9", "#f7d08a", "#c7b8e8", "#f2b6b6", "#e8c39e", "#e7a1b0", "#d9c27e")
-HALL_TINT = "#fff7c2"
+HALL_TINTS = ("#fff7c2", "#c9e4c5", "#bcd7ea", "#e0e0e0")  # touching hall pieces differ: their cut shows
 ROLE_WORDS = {MEDIC_ROLE: "medic", ENGINEER: "engineer"}
 FOG_LEGEND = "' ' not seen, '?' not seen, may hold a victim"  # the ASCII of what the team has not seen
 
@@ -490,14 +490,21 @@ def save_map(env: USAREnv, path, title: str | None = None, state: EnvState | Non
     scale = _font_scale(ax.figure.get_figwidth())
     region = env.graph.cell_region
     tint = np.zeros(region.shape + (4,))
-    rooms = 0
+    taken = np.zeros(region.shape, bool)  # labels go where no agent or victim stands
+    taken[tuple(np.asarray(state.agent_pos).T)] = True
+    taken[tuple(np.asarray(state.victim_pos if state.victim_pos is not None else env.victim_pos).T)] = True
+    rooms, hall_tint = 0, {}
     for r, (name, kind) in enumerate(zip(env.graph.names, env.graph.kinds)):
         cells = region == r
-        color = HALL_TINT if kind == "hall" else ROOM_TINTS[rooms % len(ROOM_TINTS)]
-        rooms += kind != "hall"
+        if kind == "hall":  # greedily a tint no touching hall piece has, so the cuts between pieces show
+            used = {hall_tint.get(q) for q in np.flatnonzero(env.graph.adjacency[r])}
+            hall_tint[r] = next((t for t in HALL_TINTS if t not in used), HALL_TINTS[0])
+            color = hall_tint[r]
+        else:
+            color, rooms = ROOM_TINTS[rooms % len(ROOM_TINTS)], rooms + 1
         tint[cells] = to_rgba(color, 0.6)
-        rows, cols = np.nonzero(cells)
-        k = np.argmin((rows - rows.mean()) ** 2 + (cols - cols.mean()) ** 2)  # a cell of the region near its middle
+        rows, cols = np.nonzero(cells & ~taken) if (cells & ~taken).any() else np.nonzero(cells)
+        k = np.argmin((rows - rows.mean()) ** 2 + (cols - cols.mean()) ** 2)  # a free cell near the middle
         ax.text(cols[k], rows[k], name, ha="center", va="center", fontsize=6 * min(scale, 1.5), zorder=5,
                 bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.75))
     ax.imshow(tint, interpolation="nearest", origin="upper", zorder=1)
