@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxusar.envs.usar import N_ACTIONS
+from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, TRIAGE
 
 
 def _fixed_point(dist: np.ndarray, relax) -> np.ndarray:
@@ -97,8 +97,6 @@ def steps_to_clear(solid: np.ndarray, rubble_cells: np.ndarray, bits: int) -> np
     index = np.full((h, w), -1, np.int64)
     index[tuple(np.asarray(rubble_cells).T)] = np.arange(n_cells)
     rows, cols, dirs = np.meshgrid(np.arange(h), np.arange(w), np.arange(4), indexing="ij")
-    from jaxusar.envs.usar import DIR_DELTA, TRIAGE
-
     fr, fc = rows + DIR_DELTA[dirs, 0], cols + DIR_DELTA[dirs, 1]
     inside = (fr >= 0) & (fr < h) & (fc >= 0) & (fc < w)
     front = np.where(inside, index[np.clip(fr, 0, h - 1), np.clip(fc, 0, w - 1)], -1).reshape(-1)
