@@ -629,18 +629,18 @@ def test_rubble_groups_are_touching_cells():
     assert int(two.config_of(two.mode_of(jnp.zeros_like(rubble)))) == 1
 
 
-def test_clear_options_are_the_engineers_and_navigation_waits_for_a_way(rubble_options):
+def test_clear_options_are_the_engineers_and_navigation_waits_at_the_rubble(rubble_options):
     env, opts = rubble_options
     assert opts.names[-1] == "CLEAR-RUBBLE-0" and opts.kind[-1] == CLEAR
     hall, bottom, none = env.graph.index("hall_way"), env.graph.index("bottom_room"), jnp.zeros(2, bool)
     to_bottom, triage_bottom = opts.names.index("NAVIGATE-TO-BOTTOM-ROOM"), opts.names.index("TRIAGE-BOTTOM-VICTIM")
     medic, engineer = 0, 1
     blocked = np.asarray(opts.can_initiate(hall, none, 0, medic))
-    assert not blocked[to_bottom] and not blocked[-1]  # no way into the bottom room; medics never clear
-    assert np.asarray(opts.can_initiate(hall, none, 1, medic))[to_bottom]  # cleared: the way is open
+    assert blocked[to_bottom] and not blocked[-1]  # towards the rubble in the way, to wait; medics never clear
+    assert np.asarray(opts.can_initiate(hall, none, 1, medic))[to_bottom]
     assert np.asarray(opts.can_initiate(hall, none, 0, engineer))[-1]
     assert not np.asarray(opts.can_initiate(bottom, none, 1, engineer))[triage_bottom]  # engineers never triage
-    assert not np.asarray(opts.can_initiate(hall, none, 1, engineer)).any()  # nothing left to clear: idle
+    assert not np.asarray(opts.can_initiate(hall, none, 1, engineer))[-1]  # nothing left to clear
     assert bool(opts.terminated(len(opts.names) - 1, hall, none, 1)) and not bool(opts.terminated(4, hall, none, 0))
 
 
@@ -686,7 +686,7 @@ def test_the_coordinator_clears_then_triages_with_exact_subpolicies():
     assert obs.shape == (macro.obs_dim,) and macro.obs_blocks[-1:] == (1,) and float(obs[-1]) == 0.0
     valid = np.asarray(macro.valid_options(obs))
     assert valid[2, names.index("CLEAR-RUBBLE-0")] and not valid[0, names.index("CLEAR-RUBBLE-0")]
-    assert not valid[1, names.index("NAVIGATE-TO-BOTTOM-ROOM")]
+    assert valid[1, names.index("NAVIGATE-TO-BOTTOM-ROOM")]
     plan = [("NAVIGATE-TO-TOP-ROOM", "NAVIGATE-TO-TOP-ROOM", "CLEAR-RUBBLE-0")]
     obs, s, r, done, info = macro.step(None, s, jnp.array([names.index(o) for o in plan[0]]), p)
     assert bool(info["valid"])
@@ -712,3 +712,23 @@ def test_too_much_rubble_for_the_subpolicies_is_a_one_line_error_before_anything
                                           "handle at most 6") as err:
         options_from_graph(env.graph, "chained", env)
     assert "\n" not in str(err.value)
+
+
+def test_navigation_cut_off_by_rubble_waits_next_to_it(rubble_options):
+    """NAVIGATE-TO-BOTTOM-ROOM with the doorway's rubble in place: walk to a cell beside the rubble in the
+    way and do a no-op there (its end in training); once cleared, the same task goes on into the room."""
+    env, opts = rubble_options
+    tasks = sp.make_tasks(env, opts, navigation="chained")
+    k = [t.name for t in tasks].index("NAVIGATE-TO-BOTTOM-ROOM")
+    params = sp.task_params(env, tasks, 0.95, {})
+    wait = np.asarray(params.wait[k])
+    assert np.argwhere(wait[0]).tolist() == [[6, 11], [7, 11]] and not wait[3].any()  # mode 3: all cleared
+    east = 0
+    assert params.dist[k][0, 7, 10, east] == 2 and params.dist[k][0, 7, 11, east] == 1  # then the no-op
+    assert params.dist[k][3, 7, 10, east] == 2  # cleared: two steps into the room
+    senv = sp.SubtaskEnv(env, env.horizon, "cell")
+    p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
+    *_, success, _ = senv._transition(jnp.array([7, 11]), jnp.int32(east), jnp.int32(3), jnp.int32(0), p)
+    assert bool(success)
+    *_, success, _ = senv._transition(jnp.array([7, 11]), jnp.int32(east), jnp.int32(3), jnp.int32(3), p)
+    assert not bool(success)  # no waiting once the way is open

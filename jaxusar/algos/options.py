@@ -14,8 +14,10 @@ offered in the regions that hold or touch a cell of g while g is not cleared, en
 g is cleared. TRIAGE is for medics only. Where rubble lies, every option is also offered only where the
 rubble not yet cleared leaves a way: from every open cell of the agent's region, the room (NAVIGATE),
 the victim (TRIAGE) or a cell next to the group (CLEAR) can be reached with every uncleared group's
-cells solid (``open_from``, one table per *config*: the bitmask of cleared groups). An engineer with no
-rubble left to clear is idle (no option).
+cells solid (``open_from``, one table per *config*: the bitmask of cleared groups). A NAVIGATE whose
+room rubble cuts off goes instead to a cell beside the rubble in its way and waits there
+(``waiting_cells``), so a medic can be at the doorway when an engineer clears it (two_rooms_rubble's
+optimum has a medic walk to the rubble before any is cleared).
 
 Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
 cleared groups), usable inside jit.
@@ -140,8 +142,7 @@ class Options:
         group_open = ((config >> jnp.maximum(jnp.asarray(self.group), 0)) & 1) == 0
         ok = jnp.asarray(self.open_from)[config, agent_region] & ((role_of < 0) | (role_of == role))
         ok = ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, True))
-        n_configs = self.open_from.shape[0]
-        return ok & ((role != ENGINEER) | (config != n_configs - 1))  # an engineer with nothing to clear idles
+        return ok
 
     def terminated(self, option: jax.Array, agent_region: jax.Array, triaged: jax.Array,
                    config: jax.Array = 0) -> jax.Array:
@@ -179,6 +180,26 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
 
 
 NAVIGATIONS = ("adjacent", "chained", "goal")
+
+
+def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """bool[H, W]: where a NAVIGATE to the cells ``goal`` waits while ``uncleared`` rubble cuts it off:
+    open cells from which no way leads to the goal now, next to an uncleared rubble cell nearer the goal
+    on the map with every rubble cleared (the rubble in its way). ``solid``: blocked cells, rubble aside."""
+    from jaxusar.planning import steps_to_goal
+
+    no_victim = np.full(solid.shape, -1, np.int32)
+    far = np.iinfo(np.int32).max
+    cleared = steps_to_goal(solid, no_victim, goal_region_mask=goal)
+    near = np.where(cleared < 0, far, cleared).min(-1)  # steps to the goal per cell, rubble cleared
+    cut = (steps_to_goal(solid | uncleared, no_victim, goal_region_mask=goal) < 0).all(-1) & ~(solid | uncleared)
+    wait = np.zeros(solid.shape, bool)
+    for r, c in np.argwhere(uncleared):
+        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+            i, j = r + dr, c + dc
+            if 0 <= i < solid.shape[0] and 0 <= j < solid.shape[1] and cut[i, j] and near[r, c] < near[i, j]:
+                wait[i, j] = True
+    return wait
 
 
 def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=None) -> Options:
@@ -239,8 +260,10 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
             return np.array([open_cells[region == q].any() and ok[region == q].all() for q in range(graph.n_regions)])
 
         for o in range(len(names)):
-            if kind[o] == NAVIGATE:
-                dist = steps_to_goal(solid, no_victim, goal_region_mask=region == opt_region[o])
+            if kind[o] == NAVIGATE:  # the room, or where rubble in the way is waited for
+                room = region == opt_region[o]
+                wait = waiting_cells(env._solid, rubble.uncleared_in_config(config), room)
+                dist = steps_to_goal(solid, no_victim, goal_region_mask=room | wait)
                 open_from[config, :, o] = plain.starts_from[:, opt_region[o]] & from_all_cells(dist)
             elif kind[o] == TRIAGE:
                 target = no_victim.copy()

@@ -36,7 +36,10 @@ Rubble (contract part 2): CLEAR-g, an engineer's task, starts anywhere in the re
 touch group g and ends when every cell of g is cleared (+100). Every task on a map with rubble runs in
 each *mode* (the bitmask of rubble cells cleared; ``options.Rubble``), rubble not yet cleared solid, and
 its states are those from which its goal can be reached in their mode: the coordinator may start any
-option between two clearings, so the sub-policies are trained and judged exact over all of them.
+option between two clearings, so the sub-policies are trained and judged exact over all of them. A NAVIGATE
+cut off from its room by rubble (in a mode) instead ends, in training, with a no-op (TRIAGE) at a cell
+beside the rubble in its way (``options.waiting_cells``): its greedy policy then waits there, in the
+team env, until a clearing changes its mode and it goes on into the room.
 
 Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
 (the task's victim triaged; 0 for NAVIGATE), on a map with rubble a flag per rubble cell (cleared), and
@@ -58,7 +61,7 @@ import numpy as np
 from flax import struct
 
 from jaxusar import planning
-from jaxusar.algos.options import CLEAR, NAVIGATE, Options, Rubble, next_hop, room_label
+from jaxusar.algos.options import CLEAR, NAVIGATE, Options, Rubble, next_hop, room_label, waiting_cells
 from jaxusar.config import ConfigError, DQNConfig
 from jaxusar.core.learners import IndependentDQN, default_row, dqn_target
 from jaxusar.envs.usar import DIR_DELTA, N_ACTIONS, TRIAGE, EnvState, USAREnv, apply_actions
@@ -101,6 +104,7 @@ class TaskParams:
     dist: jax.Array         # int32[G, H, W, 4]: optimal steps from each state to each goal's sub-goal
     gamma: jax.Array        # float32
     clears: jax.Array       # int32: the mode bits a CLEAR task clears (0: not a CLEAR task)
+    wait: jax.Array         # bool[G * modes, H, W]: where a NAVIGATE cut off by rubble ends with a no-op
     weak: jax.Array         # bool[K]: the initiation states the latest test's greedy policy was not optimal
                             # from (``SubtaskEnv.refocus``); False on padding
 
@@ -237,12 +241,21 @@ def _task_arrays(env: USAREnv, t: Task):
         cell = tuple(layout.victim_pos[t.victim])
         victim_at[cell], solid[cell] = 0, True
     goals = np.asarray(t.goal_regions, np.int32)
+    wait = np.zeros((len(goals) * rubble.n_modes,) + layout.shape, bool)
     if t.clears:
-        return solid, victim_at, goals, planning.steps_to_clear(solid, rubble.cells, t.clears)
-    dist = [planning.steps_to_goal(solid | np.asarray(rubble.uncleared(m)), victim_at,
-                                   goal_region_mask=(region == g) if g >= 0 else None, triage=g < 0)
-            for g in goals for m in range(rubble.n_modes)]
-    return solid, victim_at, goals, np.stack(dist)
+        return solid, victim_at, goals, planning.steps_to_clear(solid, rubble.cells, t.clears), wait
+    dist = []
+    for g in goals:
+        for m in range(rubble.n_modes):
+            now = solid | np.asarray(rubble.uncleared(m))
+            d = planning.steps_to_goal(now, victim_at, goal_region_mask=(region == g) if g >= 0 else None, triage=g < 0)
+            if g >= 0 and rubble.n_cells:  # cut off by rubble: to where it waits, then one no-op (TRIAGE) there
+                w = waiting_cells(solid, np.asarray(rubble.uncleared(m)), region == g)
+                wait[len(dist)] = w
+                to_wait = planning.steps_to_goal(now, victim_at, goal_region_mask=w)
+                d = np.where(d >= 0, d, np.where(to_wait >= 0, to_wait + 1, -1))
+            dist.append(d)
+    return solid, victim_at, goals, np.stack(dist), wait
 
 
 def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: str = "adjacent") -> np.ndarray:
@@ -295,8 +308,8 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
     for t in tasks:
         if not len(t.initiation):
             raise ConfigError(f"task {t.name}: no state of its initiation set can reach its sub-goal")
-        solid, victim_at, goals, dist = _task_arrays(env, t)
-        goals, dist = pad(goals, n_goals), pad(dist, n_goals * n_modes)
+        solid, victim_at, goals, dist, wait = _task_arrays(env, t)
+        goals, dist, wait = pad(goals, n_goals), pad(dist, n_goals * n_modes), pad(wait, n_goals * n_modes)
         for k in ("test_starts", "initiation"):
             states = getattr(t, k)
             if np.any(dist[states[:, 3], states[:, 0], states[:, 1], states[:, 2]] < 0):
@@ -306,6 +319,7 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
                          **{k: pad(getattr(t, k), width[k]) for k in width},
                          **{"n_" + k: np.int32(len(getattr(t, k))) for k in width},
                          dist=dist, gamma=np.float32(task_gamma.get(t.name, dqn_gamma)), clears=np.int32(t.clears),
+                         wait=wait,
                          weak=np.zeros(width["initiation"], bool)))
     return TaskParams(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
 
@@ -397,6 +411,7 @@ class SubtaskEnv:
             clear = (p.clears != 0) & (action == TRIAGE) & inside & (cell >= 0) & (((mode >> jnp.maximum(cell, 0)) & 1) == 0)
             cleared = jnp.where(clear, mode | (1 << jnp.maximum(cell, 0)), mode)
             success = success | (p.clears != 0) & ((cleared & p.clears) == p.clears)
+            success = success | (action == TRIAGE) & p.wait[goal, pos[0], pos[1]]
             goal = goal - mode + cleared
         return new[0], d[0], triaged[0], success, goal
 
