@@ -36,7 +36,6 @@ from jaxusar.envs.graph import RegionGraph
 from jaxusar.envs.layout import ENGINEER, MEDIC
 
 NAVIGATE, TRIAGE, CLEAR = 0, 1, 2
-KIND_NAMES = ("NAVIGATE", "TRIAGE", "CLEAR")
 MAX_RUBBLE_CELLS = 6  # sub-policies see which rubble cells are cleared: 2^6 modes per task at most
 
 
@@ -141,8 +140,7 @@ class Options:
         victim_open = ~triaged[jnp.maximum(jnp.asarray(self.victim), 0)]
         group_open = ((config >> jnp.maximum(jnp.asarray(self.group), 0)) & 1) == 0
         ok = jnp.asarray(self.open_from)[config, agent_region] & ((role_of < 0) | (role_of == role))
-        ok = ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, True))
-        return ok
+        return ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, True))
 
     def terminated(self, option: jax.Array, agent_region: jax.Array, triaged: jax.Array,
                    config: jax.Array = 0) -> jax.Array:
@@ -236,14 +234,14 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
         raise ConfigError(f"map {env.layout.name!r} has {rubble.n_cells} rubble cells: the hierarchical method's "
                           f"sub-policies handle at most {MAX_RUBBLE_CELLS} (they see each cell cleared or not)")
     region = graph.cell_region
-    near = np.zeros(env.layout.shape, np.int32) - 1  # the group a cell holds or touches (-1: none)
-    touches = np.zeros((graph.n_regions, rubble.n_groups), bool)
+    beside = np.zeros((rubble.n_groups,) + env.layout.shape, bool)  # the open cells next to each group
+    touches = np.zeros((graph.n_regions, rubble.n_groups), bool)  # the regions holding or touching it
     for (r, c), g in zip(rubble.cells, rubble.group):
         for dr, dc in ((0, 0), (0, 1), (1, 0), (0, -1), (-1, 0)):
             i, j = r + dr, c + dc
             if 0 <= i < region.shape[0] and 0 <= j < region.shape[1] and region[i, j] >= 0:
                 touches[region[i, j], g] = True
-                near[i, j] = g if (dr, dc) != (0, 0) and not env.layout.rubble[i, j] else near[i, j]
+                beside[g, i, j] |= not env.layout.rubble[i, j]
     names = plain.names + tuple(f"CLEAR-RUBBLE-{g}" for g in range(rubble.n_groups))
     kind = np.concatenate([plain.kind, np.full(rubble.n_groups, CLEAR, np.int32)])
     opt_region = np.concatenate([plain.region, np.full(rubble.n_groups, -1, np.int32)])
@@ -252,7 +250,8 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
     no_victim = np.full(env.layout.shape, -1, np.int32)
     open_from = np.zeros((rubble.n_configs, graph.n_regions, len(names)), bool)
     for config in range(rubble.n_configs):
-        solid = env._solid | rubble.uncleared_in_config(config)
+        uncleared = rubble.uncleared_in_config(config)
+        solid = env._solid | uncleared
         open_cells = ~solid & (region >= 0)
 
         def from_all_cells(dist):  # bool[R]: every open cell of the region (there is one) reaches the goal
@@ -262,7 +261,7 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
         for o in range(len(names)):
             if kind[o] == NAVIGATE:  # the room, or where rubble in the way is waited for
                 room = region == opt_region[o]
-                wait = waiting_cells(env._solid, rubble.uncleared_in_config(config), room)
+                wait = waiting_cells(env._solid, uncleared, room)
                 dist = steps_to_goal(solid, no_victim, goal_region_mask=room | wait)
                 open_from[config, :, o] = plain.starts_from[:, opt_region[o]] & from_all_cells(dist)
             elif kind[o] == TRIAGE:
@@ -271,6 +270,6 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
                 reach = from_all_cells(steps_to_goal(solid, target, triage=True))
                 open_from[config, opt_region[o], o] = reach[opt_region[o]]
             else:
-                reach = from_all_cells(steps_to_goal(solid, no_victim, goal_region_mask=(near == group[o]) & ~solid))
+                reach = from_all_cells(steps_to_goal(solid, no_victim, goal_region_mask=beside[group[o]] & ~solid))
                 open_from[config, :, o] = touches[:, group[o]] & reach
     return Options(names, kind, opt_region, victim, plain.starts_from, group, open_from, rubble)
