@@ -34,8 +34,21 @@ class ConfigError(ValueError):
     """A config that cannot be run; the message names the offending key."""
 
 
-def _field(default, check=None, doc=""):
-    meta = {"check": check, "doc": doc}
+def _without_added_defaults(obj, d: dict) -> dict:
+    """``d`` (``dataclasses.asdict(obj)``) without the ``added`` fields (``_field``) at their defaults."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            _without_added_defaults(value, d[f.name])
+        elif f.metadata.get("added") and value == f.default:
+            del d[f.name]
+    return d
+
+
+def _field(default, check=None, doc="", added=False):
+    """A config field: its default, a check of a value, and its help text. ``added``: a field that came
+    after results were committed; ``to_dict`` leaves it out at its default, so their configs hash as before."""
+    meta = {"check": check, "doc": doc, "added": added}
     if isinstance(default, dict):  # mutable: each config gets its own copy
         return dataclasses.field(default_factory=lambda: dict(default), metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -186,8 +199,10 @@ class CoordinatorConfig:
     invalid_penalty: float = _field(-100.0, doc="reward for a joint option whose initiation set is not met")
     option_timeout: int = _field(0, _non_negative, "an option running this many primitive steps terminates; 0: "
                                  "1.5x the longest optimal path of any option, at least 50 (two_rooms: 50)")
-    block_patience: int = _field(0, _non_negative, "the options also end once a medic has stood this many steps "
-                                 "in a row blocked by another medic; 0: off (the paper's options)")
+    block_patience: int = _field(0, _non_negative, "the options also end once an agent has been stopped this "
+                                 "many times by another without moving; 0: off (the paper's options)")
+    dodge: bool = _field(False, doc="an agent blocked by another steps aside (turn right, forward) before its "
+                         "sub-policy acts again; on by default where rubble lies (agents wait beside it)", added=True)
     termination: str = _field("all", lambda s: s in ("all", "own"),
                               "all (the paper: every medic's option ends when the first one does, and the "
                               "coordinator chooses for all) or own (each option runs to its own end; the "
@@ -246,6 +261,11 @@ class HierarchicalConfig:
                              "chained (a sub-policy per region, shared by the medics; NAVIGATE to any room chains "
                              "them along the region graph's shortest path) or goal (one sub-policy for every room, "
                              "shared by the medics, told the room in its input)")
+    option_kinds: tuple[str, ...] = _field(
+        (), lambda k: all(x in ("navigate", "triage", "clear", "search") for x in k) and len(set(k)) == len(k),
+        "the option kinds to build, e.g. [navigate, triage] (navigate, triage, clear: engineers' rubble "
+        "clearing; search: rooms searched under view, not built yet); empty: every kind the map offers",
+        added=True)
     coordinator: CoordinatorConfig = dataclasses.field(default_factory=CoordinatorConfig)
 
 
@@ -262,7 +282,7 @@ class ExperimentConfig:
     def to_dict(self) -> dict:
         """The config as a dict; map settings left to the map are left out, so a config that sets none
         reads (and hashes) as it did before they existed."""
-        out = dataclasses.asdict(self)
+        out = _without_added_defaults(self, dataclasses.asdict(self))
         out["env"] = {k: v for k, v in out["env"].items() if k not in MAP_SETTINGS or v is not None}
         return out
 
@@ -451,6 +471,8 @@ def map_defaults(data: dict) -> dict:
     - from 3 agents, the factored coordinator (one option head per agent);
     - from 4 agents, options that run to their own end, with a coordinator budget three times the
       default and epsilon decayed over three times as many decisions (300 and 600: office's tuning, seed 1000);
+    - where rubble lies, blocked agents step aside (``dodge``): waiting beside rubble, agents stand in
+      others' way;
     - on a map of 512 cells or more, the sub-policies' one-hot input looked up, and for the paper's
       method shorter sub-policy chunks (1,000 steps) with an update every 2 env steps.
 
@@ -472,6 +494,8 @@ def map_defaults(data: dict) -> dict:
         default = CoordinatorConfig()
         coordinator.update(termination="own", episodes=3 * default.episodes,
                            eps_decay_steps=3 * default.eps_decay_steps)
+    if layout.rubble.any():
+        coordinator["dodge"] = True
     if coordinator:
         out["hierarchical"] = {"coordinator": coordinator}
     if layout.shape[0] * layout.shape[1] >= WIDE_MAP_CELLS:

@@ -1,5 +1,7 @@
 """The paper's method: options from the graph, pseudo-reward sub-tasks, the SMDP coordinator."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +11,7 @@ from jaxusar import config, envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import defaults as algos_defaults
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import CLEAR, NAVIGATE, TRIAGE, Rubble, next_hop, options_from_graph
+from jaxusar.algos.options import CLEAR, NAVIGATE, TRIAGE, Rubble, next_hop, options_from_graph, waiting_cells
 from jaxusar.config import ConfigError
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.hierarchical import auto_option_timeout
@@ -284,7 +286,7 @@ def _oracle_macro(env, navigation, cfg):
     macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), act,
                            senv.observe, cfg.gamma, cfg.invalid_penalty,
                            cfg.option_timeout or auto_option_timeout(env, opts, tasks, params),
-                           factored=cfg.kind == "factored", block_patience=cfg.block_patience,
+                           factored=cfg.kind == "factored", block_patience=cfg.block_patience, dodge=cfg.dodge,
                            cells=cfg.features == "cells", own_termination=cfg.termination == "own",
                            option_goals=sp.option_goals(opts, tasks))
     return macro, tasks, sub
@@ -678,7 +680,7 @@ def test_rubble_subtasks_are_exact_in_every_mode(rubble_options):
 
 def test_the_coordinator_clears_then_triages_with_exact_subpolicies():
     env = envs.make("two_rooms_rubble", horizon=300)
-    cfg = config.CoordinatorConfig(kind="factored")
+    cfg = config.CoordinatorConfig(kind="factored", dodge=True)
     macro, tasks, sub = _oracle_macro(env, "chained", cfg)
     p = coord.CoordinatorParams(subpolicy=sub)
     names = macro.options.names
@@ -694,12 +696,12 @@ def test_the_coordinator_clears_then_triages_with_exact_subpolicies():
         if bool(done):
             break
         regions, triaged, config_ = macro.decode(obs)
-        if int(config_):
-            assert not bool(jnp.asarray(s.env.rubble).any())
+        assert int(config_) == int(not jnp.asarray(s.env.rubble).any())
         valid = np.asarray(macro.valid_options(obs))
-        prefer = [names.index(n) for n in ("TRIAGE-TOP-VICTIM", "TRIAGE-BOTTOM-VICTIM", "CLEAR-RUBBLE-0",
-                                           "NAVIGATE-TO-BOTTOM-ROOM", "NAVIGATE-TO-TOP-ROOM")]
-        choice = [next((o for o in prefer if valid[i, o]), int(np.argmax(valid[i]))) for i in range(3)]
+        prefer = [[names.index(n) for n in ranked] for ranked in (
+            ("TRIAGE-TOP-VICTIM", "NAVIGATE-TO-TOP-ROOM"), ("TRIAGE-BOTTOM-VICTIM", "NAVIGATE-TO-BOTTOM-ROOM"),
+            ("CLEAR-RUBBLE-0", "NAVIGATE-TO-TOP-ROOM"))]  # the engineer out of the way once a way is open
+        choice = [next((o for o in prefer[i] if valid[i, o]), int(np.argmax(valid[i]))) for i in range(3)]
         obs, s, r, done, info = macro.step(None, s, jnp.array(choice), p)
     assert bool(jnp.all(s.env.triaged)) and not bool(s.env.rubble.any())
 
@@ -732,3 +734,78 @@ def test_navigation_cut_off_by_rubble_waits_next_to_it(rubble_options):
     assert bool(success)
     *_, success, _ = senv._transition(jnp.array([7, 11]), jnp.int32(east), jnp.int32(3), jnp.int32(3), p)
     assert not bool(success)  # no waiting once the way is open
+
+
+def _cells(rows: str, char: str) -> np.ndarray:
+    return np.array([[c == char for c in row] for row in rows.split()])
+
+
+@pytest.mark.parametrize("rows, waits", [
+    # a one-wide rubbled doorway: its one clearing cell (2, 4) stays free for the engineer
+    ("V..#...... ...#...... ...r...... ...#...... ...#......", [[1, 4], [2, 5], [3, 4]]),
+    # rubble at the end of a one-wide corridor: waiting anywhere in it would shut the engineer out
+    ("V..###### ...r..... ...####.. ...#.....", [[1, 8], [2, 7]]),
+    # two_rooms_rubble's two-cell doorway: either clearing cell leaves the other to the engineer
+    (None, [[6, 11], [7, 11]]),
+])
+def test_a_waiting_navigation_leaves_the_engineer_a_clearing_cell_and_a_way_to_it(rows, waits):
+    if rows is None:
+        env = envs.make("two_rooms_rubble")
+        solid, rubble, goal = env._solid, np.asarray(env.layout.rubble), env.graph.cell_region == env.graph.names.index("bottom_room")
+    else:
+        solid, rubble = _cells(rows, "#"), _cells(rows, "r")
+        goal = np.zeros_like(solid)
+        goal[:, :3] = True  # the room behind the rubble
+    assert np.argwhere(waiting_cells(solid, rubble, goal)).tolist() == waits
+
+
+def _hall_macro(**kw):
+    """Two medics face each other in the middle of an open hall; scripted sub-policies always go FORWARD."""
+    grid = "V.........V\n...........\n....AA.....\n..........."
+    regions = "A a_room room\nB b_room room\nC hall hall\n---\n" + "AACCCCCCCBB\n" * 4
+    env = envs.make(envs.parse_layout(grid, regions, "hall"))
+    opts = options_from_graph(env.graph, "adjacent")
+    macro = coord.MacroEnv(env, opts, np.zeros((2, opts.n), np.int32), subpolicy_act=lambda p, obs: jnp.array([0]),
+                           observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9, invalid_penalty=-100.0,
+                           option_timeout=3, factored=True, **kw)
+    options = jnp.array([opts.names.index("NAVIGATE-TO-B-ROOM"), opts.names.index("NAVIGATE-TO-A-ROOM")])
+    _, s = macro.reset(None)
+    return macro, options, s.env.replace(agent_dir=jnp.array([0, 2])), coord.CoordinatorParams(jnp.zeros((1, 1)))
+
+
+@pytest.mark.parametrize("dodge", [False, True])
+def test_dodge_lets_agents_meeting_head_on_in_the_open_step_aside(dodge):
+    """Stopped by the other, each medic turns right and steps forward (south and north): 3 steps; without
+    dodge both stand. A dodge does not end options, and a stop it follows still counts towards patience."""
+    macro, options, s, p = _hall_macro(dodge=dodge)
+    _, s2, _, _, info = jax.jit(macro.step)(None, s, options, p)
+    assert int(info["steps"]) == 3
+    assert s2.agent_pos.tolist() == ([[3, 4], [1, 5]] if dodge else [[2, 4], [2, 5]])
+    assert s2.agent_dir.tolist() == ([1, 3] if dodge else [0, 2])
+    blocked = macro.unblocked()
+    for count, phase in ([1, 2], [1, 1], [0, 0]):  # stopped; turned (not moved); stepped aside (moved)
+        s, _, _, blocked = macro.advance(s, options, jnp.array([True, True]), blocked, p)
+        if dodge:
+            assert blocked.tolist() == [[count] * 2, [phase] * 2]
+
+
+@pytest.mark.parametrize("map_, kinds, message", [
+    ("two_rooms", "[navigate,clear]", "without triage options no victim can be saved"),
+    ("two_rooms", "[navigate,triage,clear]", "clear options need rubble and an engineer, and map 'two_rooms' has no rubble"),
+    ("two_rooms", "[navigate,triage,search]", "search options need observation=view"),
+    ("minimap", "[navigate,triage,search]", "does not build search options yet"),
+])
+def test_an_option_kind_the_map_cannot_offer_is_a_one_line_error_before_anything_compiles(map_, kinds, message):
+    cfg = config.load(None, [f"env.map={map_}", f"hierarchical.option_kinds={kinds}"],
+                      defaults=algos_defaults("hierarchical"))
+    with pytest.raises(ConfigError, match=re.escape(message)) as err:
+        hierarchical.build(cfg)
+    assert "\n" not in str(err.value) and str(err.value).startswith(f"hierarchical.option_kinds={kinds[1:-1]}: ")
+
+
+def test_option_kinds_keep_only_the_named_kinds(rubble_options):
+    env, every = rubble_options
+    some = options_from_graph(env.graph, "chained", env, ("navigate", "triage"))
+    assert some.names == tuple(n for n in every.names if not n.startswith("CLEAR"))
+    keep = [every.names.index(n) for n in some.names]
+    assert (some.open_from == every.open_from[..., keep]).all() and (some.kind != CLEAR).all()

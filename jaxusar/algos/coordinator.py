@@ -34,9 +34,13 @@ Decisions left open by the paper, made here:
 * Medics in each other's way (not in the paper: two medics, two rooms): the sub-policies are trained
   alone and an agent cannot enter a cell another holds, so two medics meeting head-on in a one-wide
   corridor or door stand there until the timeout. ``block_patience`` (off by default, 0) ends the
-  options once a medic has been stopped by another that many steps in a row, so the coordinator decides
-  again at once; ``features: cells`` lets it see where in a region each medic stands, which a region
-  one-hot cannot say (who of two medics in one corridor is east of the other).
+  options once an agent has been stopped by another that many times without moving, so the coordinator
+  decides again at once; ``features: cells`` lets it see where in a region each medic stands, which a
+  region one-hot cannot say (who of two medics in one corridor is east of the other). In the open, the
+  same meeting ends in a standstill too (each sub-policy's shortest way is straight ahead): ``dodge``
+  (on by default where rubble lies, where agents wait beside the rubble in others' way) makes a stopped
+  agent step aside, TURN_RIGHT then FORWARD, before its sub-policy acts again (measured on a drawn map
+  with two one-wide rubbled doorways: 0/8 -> 8/8 trials solved over exact sub-policies).
 * When options end (the paper, Sec. IV-C: all of them, when the first one does; ``termination: all``):
   with four medics some option ends every few steps, and re-choosing every medic's option each time
   made the medics change course over and over (measured on office). ``termination: own`` lets each
@@ -60,7 +64,7 @@ from flax import struct
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
 from jaxusar.core.learners import FactoredDQN, IndependentDQN, default_row, dqn_target
-from jaxusar.envs.usar import DIR_DELTA, FORWARD, TRIAGE, EnvState, USAREnv
+from jaxusar.envs.usar import DIR_DELTA, FORWARD, TRIAGE, TURN_RIGHT, EnvState, USAREnv
 
 ALGORITHM = "hierarchical"  # `jaxusar train hierarchical`: sub-policies, then the coordinator
 EXPERIMENT = "jaxusar.experiments.hierarchical"
@@ -118,8 +122,10 @@ class MacroEnv:
     greedily; ``observe(pos, dir, flag, goal)`` builds its input, ``option_goals`` int[O] (default 0) the
     goal index each option's sub-policy is told (goal-conditioned navigation). ``factored``: the action is the options
     themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
-    ``block_patience`` (0: off): the options also end once an active medic has stood this many steps in a
-    row blocked by another (FORWARD into a cell a medic holds). ``cells``: the abstract state also says
+    ``block_patience`` (0: off): the options also end once an active agent has been stopped this many times
+    by another (FORWARD into a cell an agent holds) without moving in between. ``dodge``: an agent so blocked steps aside
+    (TURN_RIGHT, then FORWARD) before its sub-policy acts again, so two agents meeting head-on in the open
+    pass each other, and one walking into an agent that waits goes round it. ``cells``: the abstract state also says
     each medic's row and column (one-hot), not only its region. ``own_termination``: a medic's option
     ends only by its own termination condition (or timeout, or block); the coordinator then chooses for
     the medics whose options ended, the others' running options being part of the abstract state and
@@ -129,7 +135,7 @@ class MacroEnv:
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
                  gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
                  block_patience: int = 0, cells: bool = False, own_termination: bool = False,
-                 option_goals: np.ndarray | None = None):
+                 option_goals: np.ndarray | None = None, dodge: bool = False):
         self.env, self.options = env, options
         self.option_goals = np.zeros(options.n, np.int32) if option_goals is None else np.asarray(option_goals, np.int32)
         self.n_agents, self.horizon = env.n_agents, env.horizon
@@ -144,7 +150,7 @@ class MacroEnv:
         self.subpolicy_act, self.observe_agent = subpolicy_act, observe
         self.gamma, self.invalid_penalty = float(gamma), float(invalid_penalty)
         self.option_timeout, self.block_patience = int(option_timeout), int(block_patience)
-        self.factored, self.cells, self.own_termination = factored, cells, own_termination
+        self.factored, self.cells, self.own_termination, self.dodge = factored, cells, own_termination, dodge
         self.n_joint = options.n ** env.n_agents
         self.rubble = options.rubble  # None: no rubble, or options without CLEAR (one config)
         self.n_groups = self.rubble.n_groups if self.rubble is not None else 0
@@ -249,25 +255,36 @@ class MacroEnv:
         done = jax.vmap(self.options.terminated, in_axes=(0, 0, None, None))
         return active & done(options, self.env.graph.region_of(s.agent_pos), s.triaged, self.config_of(s))
 
+    def unblocked(self) -> jax.Array:
+        """int32[2, n_agents]: ``advance``'s blocked counts and dodge phases at a decision's start."""
+        return jnp.zeros((2, self.n_agents), jnp.int32)
+
     def advance(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                 p: CoordinatorParams):
         """One primitive step of a running joint option: (state, team reward, done, blocked), where
-        ``blocked`` int32[n_agents] counts each medic's steps in a row stopped by another medic."""
+        ``blocked`` int32[2, n_agents] holds how often each agent has been stopped by another since it
+        last moved, and its ``dodge`` phase (2: turn right next, 1: then forward)."""
+        count, phase = blocked
         acts = self.primitive_actions(s, options, active, p)
+        acts = jnp.where(phase == 2, TURN_RIGHT, jnp.where(phase == 1, FORWARD, acts))
         _, st, r, done, _ = self.env.step(None, s, acts)
-        if not self.block_patience:  # nothing reads the counts
+        if not (self.block_patience or self.dodge):  # nothing reads the counts
             return st, r, done, blocked
         front = st.agent_pos + jnp.asarray(DIR_DELTA)[st.agent_dir]
         held = jnp.all(front[:, None] == st.agent_pos[None], -1) & ~jnp.eye(self.n_agents, dtype=bool)
         stopped = active & (acts == FORWARD) & jnp.all(st.agent_pos == s.agent_pos, -1) & held.any(-1)
-        return st, r, done, jnp.where(stopped, blocked + 1, 0)
+        moved = jnp.any(st.agent_pos != s.agent_pos, -1)
+        count = jnp.where(stopped, count + 1, jnp.where(moved, 0, count))
+        if self.dodge:
+            phase = jnp.where(stopped & (phase == 0), 2, jnp.maximum(phase - 1, 0))
+        return st, r, done, jnp.stack([count, phase])
 
     def ended(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
               elapsed: jax.Array) -> jax.Array:
         """bool[n_agents]: the medics whose options end in ``s`` after ``elapsed`` steps each: their
         termination condition, the timeout, or (``block_patience``) blocked that long."""
         over = self.terminated(s, options, active) | (elapsed >= self.option_timeout)
-        return over | (blocked >= self.block_patience) if self.block_patience else over
+        return over | (blocked[0] >= self.block_patience) if self.block_patience else over
 
     def option_over(self, s: EnvState, options: jax.Array, active: jax.Array, blocked: jax.Array,
                     elapsed: jax.Array) -> jax.Array:
@@ -289,7 +306,6 @@ class MacroEnv:
         obs = self.observe(s)
         active = self.available(*self.decode(obs)).any(-1)  # non-idle agents
         valid = self.valid_options(obs)[jnp.arange(self.n_agents), options].all()
-        zeros = jnp.zeros(self.n_agents, jnp.int32)
         elapsed = s.elapsed  # zeros under the paper's rule
 
         def body(c):
@@ -308,7 +324,7 @@ class MacroEnv:
             # ``~valid`` so an invalid lane's loop runs no step (it would run a wrong sub-policy up to the
             # timeout, and the batch would wait on it; its result is dropped either way)
             st, ret, disc, k, _, blocked = jax.lax.while_loop(
-                cond, body, (st, zero, zero, jnp.zeros((), jnp.int32), ~valid, zeros))
+                cond, body, (st, zero, zero, jnp.zeros((), jnp.int32), ~valid, self.unblocked()))
             return (st, ret, disc, k) + self.still_running(s, st, options, active, blocked, k)
 
         # an invalid choice: penalty, one step of standing still

@@ -15,9 +15,11 @@ g is cleared. TRIAGE is for medics only. Where rubble lies, every option is also
 rubble not yet cleared leaves a way: from every open cell of the agent's region, the room (NAVIGATE),
 the victim (TRIAGE) or a cell next to the group (CLEAR) can be reached with every uncleared group's
 cells solid (``open_from``, one table per *config*: the bitmask of cleared groups). A NAVIGATE whose
-room rubble cuts off goes instead to a cell beside the rubble in its way and waits there
+room rubble cuts off goes instead to a cell near the rubble in its way and waits there
 (``waiting_cells``), so a medic can be at the doorway when an engineer clears it (two_rooms_rubble's
-optimum has a medic walk to the rubble before any is cleared).
+optimum has a medic walk to the rubble before any is cleared); the cell leaves the engineer another cell
+to clear the rubble from and a way to it (agents block each other: at a one-wide doorway the medic waits
+a step back).
 
 Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
 cleared groups), usable inside jit.
@@ -127,6 +129,12 @@ class Options:
     def n(self) -> int:
         return len(self.names)
 
+    def only(self, kinds: tuple[str, ...]) -> "Options":
+        """The options of the named ``kinds`` (``OPTION_KINDS``), in the same order."""
+        keep = np.isin(self.kind, [OPTION_KINDS.index(k) for k in kinds])
+        return Options(tuple(np.asarray(self.names)[keep]), self.kind[keep], self.region[keep], self.victim[keep],
+                       self.starts_from, self.group[keep], self.open_from[..., keep], self.rubble)
+
     @property
     def role(self) -> np.ndarray:
         """int32[O]: the role an option is for (MEDIC: TRIAGE, ENGINEER: CLEAR), -1: any (NAVIGATE)."""
@@ -149,6 +157,26 @@ class Options:
         return jnp.select([kind == NAVIGATE, kind == TRIAGE],
                           [agent_region == region, triaged[jnp.maximum(victim, 0)]],
                           ((config >> jnp.maximum(group, 0)) & 1) == 1)
+
+
+OPTION_KINDS = ("navigate", "triage", "clear", "search")  # the kinds a config may name (hierarchical.option_kinds)
+
+
+def check_option_kinds(kinds: tuple[str, ...], env) -> None:
+    """A one-line ConfigError where ``kinds`` (``hierarchical.option_kinds``; empty: every kind the map
+    offers) names a kind ``env`` cannot offer, or leaves the team no way to save a victim."""
+    where = f"hierarchical.option_kinds={','.join(kinds)}"
+    if kinds and "triage" not in kinds:
+        raise ConfigError(f"{where}: without triage options no victim can be saved")
+    if "clear" in kinds and not (env.has_rubble and env.has_engineers):
+        lacks = "no rubble" if not env.has_rubble else "no engineer ('E')"
+        raise ConfigError(f"{where}: clear options need rubble and an engineer, and map {env.layout.name!r} has {lacks}")
+    if "search" in kinds and env.observation != "view":
+        raise ConfigError(f"{where}: search options need observation=view (a room is searched once every cell of it "
+                          f"was seen), and map {env.layout.name!r} is observed in full")
+    if "search" in kinds:
+        raise ConfigError(f"{where}: the hierarchical method does not build search options yet (nor model "
+                          "observation=view); iql and doc train there")
 
 
 def room_label(name: str) -> str:
@@ -180,29 +208,76 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
 NAVIGATIONS = ("adjacent", "chained", "goal")
 
 
+def _components(open_cells: np.ndarray) -> np.ndarray:
+    """int32[H, W]: each open cell's 4-connected component, numbered from 1; 0 elsewhere."""
+    label, n = np.zeros(open_cells.shape, np.int32), 0
+    for start in map(tuple, np.argwhere(open_cells)):
+        if not label[start]:
+            n, stack = n + 1, [start]
+            label[start] = n
+            while stack:
+                r, c = stack.pop()
+                for i, j in ((r, c + 1), (r + 1, c), (r, c - 1), (r - 1, c)):
+                    if 0 <= i < label.shape[0] and 0 <= j < label.shape[1] and open_cells[i, j] and not label[i, j]:
+                        label[i, j] = n
+                        stack.append((i, j))
+    return label
+
+
+def _neighbours(cells: np.ndarray) -> np.ndarray:
+    """bool[H, W]: the 4-neighbours of ``cells``."""
+    out = np.zeros_like(cells)
+    out[1:] |= cells[:-1]
+    out[:-1] |= cells[1:]
+    out[:, 1:] |= cells[:, :-1]
+    out[:, :-1] |= cells[:, 1:]
+    return out
+
+
 def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """bool[H, W]: where a NAVIGATE to the cells ``goal`` waits while ``uncleared`` rubble cuts it off:
-    open cells from which no way leads to the goal now, next to an uncleared rubble cell nearer the goal
-    on the map with every rubble cleared (the rubble in its way). ``solid``: blocked cells, rubble aside."""
+    """bool[H, W]: where a NAVIGATE to the cells ``goal`` waits while ``uncleared`` rubble cuts it off.
+    The rubble in its way: uncleared cells next to an open cell that has no way to the goal now and is
+    farther from it than the rubble cell on the map with every rubble cleared; those open cells are where an
+    engineer on this side clears it (its *clearing cells*). An agent waiting must leave an engineer a
+    clearing cell and a way to it, since agents block each other: the waiting cells are the open cells cut
+    off from the goal nearest the clearing cells (the clearing cells themselves first) that leave another
+    clearing cell free and split no open area in two; where none does, the clearing cells.
+    ``solid``: blocked cells, rubble aside."""
     from jaxusar.planning import steps_to_goal
 
     no_victim = np.full(solid.shape, -1, np.int32)
     far = np.iinfo(np.int32).max
     cleared = steps_to_goal(solid, no_victim, goal_region_mask=goal)
     near = np.where(cleared < 0, far, cleared).min(-1)  # steps to the goal per cell, rubble cleared
-    cut = (steps_to_goal(solid | uncleared, no_victim, goal_region_mask=goal) < 0).all(-1) & ~(solid | uncleared)
-    wait = np.zeros(solid.shape, bool)
+    open_cells = ~(solid | uncleared)
+    cut = (steps_to_goal(solid | uncleared, no_victim, goal_region_mask=goal) < 0).all(-1) & open_cells
+    clearing = np.zeros(solid.shape, bool)
     for r, c in np.argwhere(uncleared):
         for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
             i, j = r + dr, c + dc
             if 0 <= i < solid.shape[0] and 0 <= j < solid.shape[1] and cut[i, j] and near[r, c] < near[i, j]:
-                wait[i, j] = True
-    return wait
+                clearing[i, j] = True
+    layer, done = clearing, np.zeros(solid.shape, bool)
+    while layer.any():  # breadth-first out from the clearing cells, through the cut-off cells
+        ok = np.zeros(solid.shape, bool)
+        for i, j in np.argwhere(layer):
+            cell = np.zeros(solid.shape, bool)
+            cell[i, j] = True
+            label = _components(open_cells & ~cell)
+            around = np.unique(label[_neighbours(cell) & open_cells])  # one area: waiting there splits none
+            ok[i, j] = len(around) == 1 and (clearing & (label == around[0])).any()
+        if ok.any():
+            return ok
+        done |= layer
+        layer = _neighbours(layer) & cut & ~done
+    return clearing
 
 
-def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=None) -> Options:
+def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=None,
+                       kinds: tuple[str, ...] = ()) -> Options:
     """The options of a map's region graph; with ``env`` (a ``USAREnv``) that holds rubble, also its
-    CLEAR options and the rubble-aware ``open_from`` (module doc)."""
+    CLEAR options and the rubble-aware ``open_from`` (module doc). ``kinds`` (``OPTION_KINDS``; empty:
+    all): only options of these kinds."""
     if navigation not in NAVIGATIONS:
         raise ValueError(f"navigation {navigation!r}: one of {NAVIGATIONS}")
     names, kind, region, victim = [], [], [], []
@@ -222,7 +297,8 @@ def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=Non
     starts_from = graph.adjacency if navigation == "adjacent" else next_hop(graph.adjacency) >= 0
     plain = Options(tuple(names), np.asarray(kind, np.int32), np.asarray(region, np.int32),
                     np.asarray(victim, np.int32), starts_from)
-    return plain if env is None or not env.has_rubble else _with_rubble(plain, graph, env)
+    options = plain if env is None or not env.has_rubble else _with_rubble(plain, graph, env)
+    return options.only(kinds) if kinds else options
 
 
 def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:

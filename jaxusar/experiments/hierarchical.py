@@ -30,7 +30,7 @@ from flax import serialization
 from jaxusar import envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import NAVIGATE, TRIAGE, options_from_graph
+from jaxusar.algos.options import NAVIGATE, TRIAGE, check_option_kinds, options_from_graph
 from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import band, band_key, kept, reward_range, smooth, training_figure
@@ -47,9 +47,10 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
     gives exact ones)."""
     env = envs.make(cfg.env.map, **cfg.env.overrides())
-    check_supported(env)
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
-    options = options_from_graph(env.graph, h.navigation, env)
+    check_option_kinds(h.option_kinds, env)
+    check_supported(env)
+    options = options_from_graph(env.graph, h.navigation, env, h.option_kinds)
     if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
         raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
                           f"{options.n ** env.n_agents:,} joint options ({options.n} options ^ {env.n_agents} medics), more than "
@@ -73,7 +74,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
                            factored=c.kind == "factored", block_patience=c.block_patience,
-                           cells=c.features == "cells", own_termination=c.termination == "own",
+                           dodge=c.dodge, cells=c.features == "cells", own_termination=c.termination == "own",
                            option_goals=sp.option_goals(options, tasks))
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
@@ -160,7 +161,7 @@ def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
             done = int(s.t) >= macro.horizon
             ms = ms.replace(env=s)
         else:
-            k, blocked = 0, np.zeros(macro.n_agents, np.int32)
+            k, blocked = 0, macro.unblocked()
             while True:
                 s, r, d, blocked = advance(s, options, active, blocked)
                 states.append(s), rewards.append(float(r))
