@@ -242,17 +242,22 @@ def test_a_checkpoint_from_before_compact_replay_rows_is_refused(tmp_path):
 # -- the command ------------------------------------------------------------------------------------
 def test_reproduce_writes_the_table_figures_and_statistics(reference, capsys):
     r = json.loads((reference / "results.json").read_text())
-    assert set(r["algorithms"]) == {"hierarchical", "doc_K2", "iql"}
+    assert set(r["algorithms"]) == {"hierarchical", "doc_K2", "iql", "scripted"}
     assert r["optimal_team_steps"] == 18 and r["trials"] == 2 and r["wall_seconds"] > 0
-    for row in r["algorithms"].values():
+    for name, row in r["algorithms"].items():
         assert len(row["episodes_to_optimal"]) == 2
         assert {"best", "median", "iqm", "iqm_ci95", "fraction_optimal", "budget_episodes"} <= set(row)
-        assert row["seconds"]["compile"] > 0 and row["seconds"]["run"] > 0
+        assert name == "scripted" or row["seconds"]["compile"] > 0 and row["seconds"]["run"] > 0
+    scripted = r["algorithms"]["scripted"]  # no learning: optimal from the start (0 episodes) or never
+    assert scripted["budget_episodes"] == 0 and set(scripted["episodes_to_optimal"]) <= {0, None}
+    assert all(s >= 18 for s in scripted["best_test_steps"]) and scripted["env_steps"] == [0, 0]
     assert r["algorithms"]["iql"]["budget_episodes"] == 60
     assert r["algorithms"]["hierarchical"]["budget_episodes"] == 6 * 20 + 4
-    assert {"jax", "flax", "optax"} <= set(r["environment"]) and set(r["config_hashes"]) == {"hierarchical", "doc", "iql"}
+    assert {"jax", "flax", "optax"} <= set(r["environment"]) and set(r["config_hashes"]) == {"hierarchical", "doc", "iql",
+                                                                                          "scripted"}
     table = (reference / "table2.md").read_text()
     assert "| Independent Q-learning | > 5,000 |" in table and "| Distributed option-critic, 2 options | 1,500 |" in table
+    assert "| Scripted team (no learning; the bar to clear) | - |" in table
     for f in ("fig4_subpolicies.png", "fig5_doc.png", "fig6_iql.png", "team_episode.png"):
         assert (reference / f).read_bytes()[:4] == b"\x89PNG", f
     # each algorithm's own folder, as `jaxusar train` writes it

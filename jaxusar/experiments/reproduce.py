@@ -1,7 +1,9 @@
 """``jaxusar reproduce``: the paper's Table II and Figs. 4-6 in one command.
 
 Runs the hierarchical method, option-critic (K = 2, 4, 8) and IQL, each with N trials in one vmapped
-call per trainer, all trainers side by side (one per CPU core), with resumable checkpoints, and writes::
+call per trainer, all trainers side by side (one per CPU core), with resumable checkpoints, plays the
+scripted team (no learning, the bar every learned team must clear; a row of the table where victims are
+fixed), and writes::
 
     results.json          per algorithm (and per K): episodes_to_optimal per trial (null = never), best,
                           median, IQM with its 95% bootstrap interval, fraction of trials optimal, episodes
@@ -43,20 +45,21 @@ from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.stats import summarize
 from jaxusar.experiments.usage import Usage
 
-ALGORITHMS = ("hierarchical", "doc", "iql")
+ALGORITHMS = ("hierarchical", "doc", "iql", "scripted")
 
 # Table II of the paper: episodes to reach the optimal policy, best of 8 trials. Only its 2-option
 # option-critic learned; 4 and 8 options stayed at the step cap for all 5000 episodes (Fig. 5).
 PAPER_TABLE2 = {"hierarchical": "1030", "doc_K2": "1,500", "doc_K4": "never (> 5,000)", "doc_K8": "never (> 5,000)",
                 "iql": "> 5,000"}
 LABELS = {"hierarchical": "Hierarchical (sub-policies + coordinator)", "doc": "Distributed option-critic",
-          "iql": "Independent Q-learning"}
+          "iql": "Independent Q-learning", "scripted": "Scripted team (no learning; the bar to clear)"}
 
 # --quick: the same pipeline on budgets that finish in minutes on a 2-core CPU (docs/performance.md: its time).
 QUICK = {
     "hierarchical": ["train.episodes=150", "hierarchical.coordinator.episodes=30"],
     "doc": ["train.episodes=200"],
     "iql": ["train.episodes=200"],
+    "scripted": [],
 }
 
 FIGURES = {"fig4_subpolicies.png": "hierarchical/fig4_subpolicies.png", "fig5_doc.png": "doc/fig5_doc.png",
@@ -193,7 +196,7 @@ def _row(metrics: dict, budget: int, seconds: dict, solved: list, best_steps: li
 
 def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:
     """results.json: one row per algorithm (per K for option-critic), statistics over trials."""
-    h, d, i = (per_algorithm[a] for a in ALGORITHMS)
+    h, d, i, sc = (per_algorithm[a] for a in ALGORITHMS)
     ch = cfgs["hierarchical"]
     stages = h["seconds"].values()
     totals = {k: round(sum(st[k] for st in stages), 2) for k in ("compile", "run")}
@@ -211,6 +214,12 @@ def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:
         rows[f"doc_K{k}"] = _row(m, cfgs["doc"].train.episodes, m["seconds"], m["episodes_to_solved"],
                                  m["best_test_steps"])
     rows["iql"] = _row(i, cfgs["iql"].train.episodes, i["seconds"], i["episodes_to_solved"], i["best_test_steps"])
+    if "optimal" in sc:  # fixed victims: optimal or not from the start, with no episode spent
+        never = lambda flags: [0 if f else None for f in flags]  # noqa: E731
+        solved = [g is not None for g in sc["optimality_gap"]]
+        rows["scripted"] = _row({**summarize(never(sc["optimal"])), "episodes_to_optimal": never(sc["optimal"]),
+                                 "optimality_gap": sc["optimality_gap"], "env_steps": sc["env_steps"]},
+                                0, {}, never(solved), sc["team_steps"])
     return {
         "trials": trials, "quick": quick, "map": cfgs["iql"].env.map, "optimal_team_steps": i["optimal_team_steps"],
         "reference": i["reference"], "team_lower_bound": i["team_lower_bound"], "algorithms": rows,

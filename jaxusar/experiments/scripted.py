@@ -73,7 +73,10 @@ class Experiment:
     FIGURES = ("team_episode.png",)
 
     def __init__(self, cfg: ExperimentConfig, keys: jax.Array):
-        self.cfg, self.keys = cfg, keys
+        from jaxusar.experiments.train import all_trial_keys
+
+        # nothing to train: process 0, the one that writes, plays every process's trials (under jax.distributed)
+        self.cfg, self.keys = cfg, all_trial_keys(cfg.seed, len(keys) * jax.process_count())
         self.env = envs.make(cfg.env.map, **cfg.env.overrides())
         self.chains = []
 

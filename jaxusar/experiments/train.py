@@ -103,7 +103,12 @@ def trial_keys(seed: int, trials: int, devices=None) -> jax.Array:
     if per % local:
         raise ConfigError(f"--trials {trials} cannot be split evenly over {n * local} devices "
                           f"({n} process(es) x {local}); use a multiple of {n * local}")
-    return jax.random.split(jax.random.PRNGKey(seed), trials)[i * per:(i + 1) * per]
+    return all_trial_keys(seed, trials)[i * per:(i + 1) * per]
+
+
+def all_trial_keys(seed: int, trials: int) -> jax.Array:
+    """Every process's trial keys together (``trial_keys`` gives each process its share)."""
+    return jax.random.split(jax.random.PRNGKey(seed), trials)
 
 
 def write_curves_csv(path: Path, results: dict) -> None:
