@@ -260,8 +260,11 @@ def table2(results: dict) -> str:
         algo, _, k = key.partition("_K")
         label = LABELS[algo] + (f", {k} options" if k else "")
         paper = PAPER_TABLE2.get(key, "-") if paper_map else "-"
-        lines.append(f"| {label} | {paper} | " + _stats_cells(r["episodes_to_optimal"], r["budget_episodes"]) +
-                     f" | {r['budget_episodes']:,} | {_count(r.get('episodes_to_solved'))} | "
+        if r["budget_episodes"]:
+            cells = _stats_cells(r["episodes_to_optimal"], r["budget_episodes"]) + f" | {r['budget_episodes']:,}"
+        else:  # no learning: optimal from the start or never
+            cells = f"- | {_count(r['episodes_to_optimal'])} | - | - | none"
+        lines.append(f"| {label} | {paper} | {cells} | {_count(r.get('episodes_to_solved'))} | "
                      f"{_shortest(r.get('best_test_steps'))} | {_gap(r.get('optimality_gap'))} |")
     h = rows.get("hierarchical")
     if h and "episodes_to_optimal_single_start" in h:

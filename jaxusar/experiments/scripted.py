@@ -58,12 +58,13 @@ def judge(env, episodes: dict) -> dict:
         out.update(reference=ref["reference"], reference_return=float(ref["return"]),
                    normalized_score=score.round(4).tolist(), normalized=over_trials(score))
     else:
-        ref = planning.team_reference(env)
-        steps = np.where(all_saved, ep["steps"], env.horizon)[:, 0]
-        out.update(reference=ref["reference"], optimal_team_steps=ref["steps"], team_lower_bound=ref["lower_bound"],
-                   team_steps=steps.tolist(), optimal=(all_saved[:, 0] & (steps == ref["steps"])).tolist(),
-                   optimality_gap=[round(int(s) / ref["lower_bound"], 4) if ok else None
-                                   for s, ok in zip(steps, all_saved[:, 0])])
+        from jaxusar.experiments.train import reference_metrics
+
+        ref, solved = planning.team_reference(env), all_saved[:, 0]
+        steps = np.where(solved, ep["steps"][:, 0], env.horizon)
+        out.update(reference_metrics(ref, {"episodes_to_solved": [0 if ok else None for ok in solved],
+                                           "best_length": steps}),
+                   team_steps=steps.tolist(), optimal=(solved & (steps == ref["steps"])).tolist())
     return out
 
 
