@@ -122,14 +122,15 @@ class MacroEnv:
     greedily; ``observe(pos, dir, flag, goal)`` builds its input, ``option_goals`` int[O] (default 0) the
     goal index each option's sub-policy is told (goal-conditioned navigation). ``factored``: the action is the options
     themselves, int32[n_agents] (a factored coordinator); else one joint-option index, int32[1].
-    ``block_patience`` (0: off): the options also end once an active agent has been stopped this many times
-    by another (FORWARD into a cell an agent holds) without moving in between. ``dodge``: an agent so blocked steps aside
-    (TURN_RIGHT, then FORWARD) before its sub-policy acts again, so two agents meeting head-on in the open
-    pass each other, and one walking into an agent that waits goes round it. ``cells``: the abstract state also says
-    each medic's row and column (one-hot), not only its region. ``own_termination``: a medic's option
-    ends only by its own termination condition (or timeout, or block); the coordinator then chooses for
-    the medics whose options ended, the others' running options being part of the abstract state and
-    their only valid choice (the paper: every option ends when the first one does).
+    ``block_patience`` (0: off): the options also end once an active agent has been stopped this many
+    times by another (FORWARD into a cell an agent holds) without moving in between. ``dodge``: an agent
+    so stopped steps aside (TURN_RIGHT, then FORWARD) before its sub-policy acts again, so two agents
+    meeting head-on in the open pass each other, and one walking into an agent that waits goes round it.
+    ``cells``: the abstract state also says each medic's row and column (one-hot), not only its region.
+    ``own_termination``: a medic's option ends only by its own termination condition (or timeout, or
+    block); the coordinator then chooses for the medics whose options ended, the others' running options
+    being part of the abstract state and their only valid choice (the paper: every option ends when the
+    first one does).
     """
 
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
