@@ -187,18 +187,22 @@ def test_macro_step_runs_until_the_first_option_terminates(two_rooms):
     assert not bool(done) and int(info["steps"]) == 7 and int(s3.t) == 7
 
 
-def _corridor_macro(**kw):
-    """Two rooms at the ends of a one-wide corridor; medic 0 bound east (NAVIGATE-TO-B-ROOM), medic 1 west,
+def _forward_macro(grid: str, region_rows: str, option_timeout: int, **kw):
+    """Rooms a (west) and b (east) joined by a hall; medic 0 bound east (NAVIGATE-TO-B-ROOM), medic 1 west,
     scripted sub-policies that always go FORWARD."""
-    grid = "V.#######.V\n....AA....."
-    regions = "A a_room room\nB b_room room\nC hall hall\n---\nAA#######BB\nAACCCCCCCBB"
-    env = envs.make(envs.parse_layout(grid, regions, "corridor"))
+    regions = "A a_room room\nB b_room room\nC hall hall\n---\n" + region_rows
+    env = envs.make(envs.parse_layout(grid, regions, "hall"))
     opts = options_from_graph(env.graph, "adjacent")
     macro = coord.MacroEnv(env, opts, np.zeros((2, opts.n), np.int32), subpolicy_act=lambda p, obs: jnp.array([0]),
                            observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9, invalid_penalty=-100.0,
-                           option_timeout=7, factored=True, **kw)
+                           option_timeout=option_timeout, factored=True, **kw)
     options = jnp.array([opts.names.index("NAVIGATE-TO-B-ROOM"), opts.names.index("NAVIGATE-TO-A-ROOM")])
     return macro, options, coord.CoordinatorParams(subpolicy=jnp.zeros((1, 1)))
+
+
+def _corridor_macro(**kw):
+    """The hall a one-wide corridor."""
+    return _forward_macro("V.#######.V\n....AA.....", "AA#######BB\nAACCCCCCCBB", 7, **kw)
 
 
 @pytest.mark.parametrize("patience", [0, 1, 3])
@@ -760,17 +764,11 @@ def test_a_waiting_navigation_leaves_the_engineer_a_clearing_cell_and_a_way_to_i
 
 
 def _hall_macro(**kw):
-    """Two medics face each other in the middle of an open hall; scripted sub-policies always go FORWARD."""
-    grid = "V.........V\n...........\n....AA.....\n..........."
-    regions = "A a_room room\nB b_room room\nC hall hall\n---\n" + "AACCCCCCCBB\n" * 4
-    env = envs.make(envs.parse_layout(grid, regions, "hall"))
-    opts = options_from_graph(env.graph, "adjacent")
-    macro = coord.MacroEnv(env, opts, np.zeros((2, opts.n), np.int32), subpolicy_act=lambda p, obs: jnp.array([0]),
-                           observe=sp.SubtaskEnv(env, env.horizon).observe, gamma=0.9, invalid_penalty=-100.0,
-                           option_timeout=3, factored=True, **kw)
-    options = jnp.array([opts.names.index("NAVIGATE-TO-B-ROOM"), opts.names.index("NAVIGATE-TO-A-ROOM")])
+    """Two medics face each other in the middle of an open hall."""
+    macro, options, p = _forward_macro("V.........V\n...........\n....AA.....\n...........",
+                                       "AACCCCCCCBB\n" * 4, 3, **kw)
     _, s = macro.reset(None)
-    return macro, options, s.env.replace(agent_dir=jnp.array([0, 2])), coord.CoordinatorParams(jnp.zeros((1, 1)))
+    return macro, options, s.env.replace(agent_dir=jnp.array([0, 2])), p
 
 
 @pytest.mark.parametrize("dodge", [False, True])

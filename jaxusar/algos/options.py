@@ -35,7 +35,7 @@ import numpy as np
 
 from jaxusar.config import ConfigError
 from jaxusar.envs.graph import RegionGraph
-from jaxusar.envs.layout import ENGINEER, MEDIC
+from jaxusar.envs.layout import ENGINEER, MEDIC, _neighbours
 
 NAVIGATE, TRIAGE, CLEAR = 0, 1, 2
 MAX_RUBBLE_CELLS = 6  # sub-policies see which rubble cells are cleared: 2^6 modes per task at most
@@ -222,16 +222,6 @@ def _components(open_cells: np.ndarray) -> np.ndarray:
                         label[i, j] = n
                         stack.append((i, j))
     return label
-
-
-def _neighbours(cells: np.ndarray) -> np.ndarray:
-    """bool[H, W]: the 4-neighbours of ``cells``."""
-    out = np.zeros_like(cells)
-    out[1:] |= cells[:-1]
-    out[:-1] |= cells[1:]
-    out[:, 1:] |= cells[:, :-1]
-    out[:, :-1] |= cells[:, 1:]
-    return out
 
 
 def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) -> np.ndarray:
