@@ -109,3 +109,11 @@ def test_a_tiny_benchmark_writes_its_leaderboard_figures_and_counts_env_steps(tm
     with pytest.raises(SystemExit, match="2"):  # a finished benchmark is never overwritten
         main(argv)
     assert "results.json exists" in capsys.readouterr().err
+
+
+def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripted_team():
+    from jaxusar.experiments import benchmark, suite
+
+    cfgs = benchmark.configs(suite.TASKS["two_rooms-v1"], "two_rooms", quick=True, sets=[])
+    assert set(cfgs) == set(benchmark.ALGORITHMS)
+    assert cfgs["iql"].train.episodes == 100 and cfgs["hierarchical"].hierarchical.coordinator.episodes == 30

@@ -149,7 +149,7 @@ def configs(task: Task, map_: str, quick: bool, sets: list[str]) -> dict[str, co
     out = {}
     for a in ALGORITHMS:
         own = [f"env.map={json.dumps(map_)}", f"env.observation={task.observation}", f"env.horizon={task.horizon}",
-               *SETTINGS.get(a, []), *(QUICK[a] if quick else [])]
+               *SETTINGS.get(a, []), *(QUICK.get(a, []) if quick else [])]
         for s in sets:
             head = s.split(".", 1)[0]
             if head not in ALGORITHMS:
