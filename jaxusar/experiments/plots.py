@@ -172,7 +172,7 @@ def benchmark_figures(results: dict, out: Path) -> list[Path]:
     finals = {a: np.array([results["runs"][f"{t}/{a}"]["final_score"] for t in algos_[a]["tasks"]]).T for a in names}
     paths = []
 
-    fig, axes = plt.subplots(1, 4, figsize=(12, 0.5 + 0.45 * len(names)), sharey=True)
+    fig, axes = plt.subplots(1, 4, figsize=(12, 1.2 + 0.45 * len(names)), sharey=True, layout="constrained")
     for ax, metric in zip(axes, stats.AGGREGATES):
         for y, a in enumerate(names):
             point, low, high = algos_[a]["aggregates"][metric]
