@@ -34,6 +34,9 @@ class ConfigError(ValueError):
     """A config that cannot be run; the message names the offending key."""
 
 
+OPTION_KINDS = ("navigate", "triage", "clear", "search")  # the option kinds hierarchical.option_kinds may name
+
+
 def _without_added_defaults(obj, d: dict) -> dict:
     """``d`` (``dataclasses.asdict(obj)``) without the ``added`` fields (``_field``) at their defaults."""
     for f in dataclasses.fields(obj):
@@ -262,7 +265,7 @@ class HierarchicalConfig:
                              "them along the region graph's shortest path) or goal (one sub-policy for every room, "
                              "shared by the medics, told the room in its input)")
     option_kinds: tuple[str, ...] = _field(
-        (), lambda k: all(x in ("navigate", "triage", "clear", "search") for x in k) and len(set(k)) == len(k),
+        (), lambda k: all(x in OPTION_KINDS for x in k) and len(set(k)) == len(k),
         "the option kinds to build, e.g. [navigate, triage] (navigate, triage, clear: engineers' rubble "
         "clearing; search: rooms searched under view, not built yet); empty: every kind the map offers",
         added=True)

@@ -267,7 +267,8 @@ class MacroEnv:
         last moved, and its ``dodge`` phase (2: turn right next, 1: then forward)."""
         count, phase = blocked
         acts = self.primitive_actions(s, options, active, p)
-        acts = jnp.where(phase == 2, TURN_RIGHT, jnp.where(phase == 1, FORWARD, acts))
+        if self.dodge:
+            acts = jnp.where(phase == 2, TURN_RIGHT, jnp.where(phase == 1, FORWARD, acts))
         _, st, r, done, _ = self.env.step(None, s, acts)
         if not (self.block_patience or self.dodge):  # nothing reads the counts
             return st, r, done, blocked

@@ -32,8 +32,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.ndimage
 
-from jaxusar.config import ConfigError
+from jaxusar.config import OPTION_KINDS, ConfigError
 from jaxusar.envs.graph import RegionGraph
 from jaxusar.envs.layout import ENGINEER, MEDIC, _neighbours
 
@@ -57,18 +58,8 @@ class Rubble:
         cells = np.argwhere(layout.rubble).astype(np.int32).reshape(-1, 2)
         index = np.full(layout.shape, -1, np.int32)
         index[tuple(cells.T)] = np.arange(len(cells))
-        group = np.full(len(cells), -1, np.int32)
-        for k in range(len(cells)):
-            if group[k] < 0:  # flood fill a new group from its first cell
-                group[k], todo = group.max() + 1, [k]
-                while todo:
-                    r, c = cells[todo.pop()]
-                    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
-                        n = index[r + dr, c + dc] if 0 <= r + dr < index.shape[0] and 0 <= c + dc < index.shape[1] else -1
-                        if n >= 0 and group[n] < 0:
-                            group[n] = group[k]
-                            todo.append(n)
-        return cls(cells, group, index)
+        label, _ = scipy.ndimage.label(layout.rubble)  # 4-connected, numbered in reading order from 1
+        return cls(cells, (label[tuple(cells.T)] - 1).astype(np.int32), index)
 
     n_cells = property(lambda self: len(self.cells))
     n_groups = property(lambda self: int(self.group.max()) + 1 if len(self.group) else 0)
@@ -159,9 +150,6 @@ class Options:
                           ((config >> jnp.maximum(group, 0)) & 1) == 1)
 
 
-OPTION_KINDS = ("navigate", "triage", "clear", "search")  # the kinds a config may name (hierarchical.option_kinds)
-
-
 def check_option_kinds(kinds: tuple[str, ...], env) -> None:
     """A one-line ConfigError where ``kinds`` (``hierarchical.option_kinds``; empty: every kind the map
     offers) names a kind ``env`` cannot offer, or leaves the team no way to save a victim."""
@@ -208,22 +196,6 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
 NAVIGATIONS = ("adjacent", "chained", "goal")
 
 
-def _components(open_cells: np.ndarray) -> np.ndarray:
-    """int32[H, W]: each open cell's 4-connected component, numbered from 1; 0 elsewhere."""
-    label, n = np.zeros(open_cells.shape, np.int32), 0
-    for start in map(tuple, np.argwhere(open_cells)):
-        if not label[start]:
-            n, stack = n + 1, [start]
-            label[start] = n
-            while stack:
-                r, c = stack.pop()
-                for i, j in ((r, c + 1), (r + 1, c), (r, c - 1), (r - 1, c)):
-                    if 0 <= i < label.shape[0] and 0 <= j < label.shape[1] and open_cells[i, j] and not label[i, j]:
-                        label[i, j] = n
-                        stack.append((i, j))
-    return label
-
-
 def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """bool[H, W]: where a NAVIGATE to the cells ``goal`` waits while ``uncleared`` rubble cuts it off.
     The rubble in its way: uncleared cells next to an open cell that has no way to the goal now and is
@@ -253,7 +225,7 @@ def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) ->
         for i, j in np.argwhere(layer):
             cell = np.zeros(solid.shape, bool)
             cell[i, j] = True
-            label = _components(open_cells & ~cell)
+            label, _ = scipy.ndimage.label(open_cells & ~cell)  # 4-connected areas, 0 elsewhere
             around = np.unique(label[_neighbours(cell) & open_cells])  # one area: waiting there splits none
             ok[i, j] = len(around) == 1 and (clearing & (label == around[0])).any()
         if ok.any():

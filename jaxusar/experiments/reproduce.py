@@ -215,11 +215,11 @@ def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:
                                  m["best_test_steps"])
     rows["iql"] = _row(i, cfgs["iql"].train.episodes, i["seconds"], i["episodes_to_solved"], i["best_test_steps"])
     if "optimal" in sc:  # fixed victims: optimal or not from the start, with no episode spent
-        never = lambda flags: [0 if f else None for f in flags]  # noqa: E731
-        solved = [g is not None for g in sc["optimality_gap"]]
-        rows["scripted"] = _row({**summarize(never(sc["optimal"])), "episodes_to_optimal": never(sc["optimal"]),
+        optimal = [0 if ok else None for ok in sc["optimal"]]
+        solved = [None if gap is None else 0 for gap in sc["optimality_gap"]]
+        rows["scripted"] = _row({**summarize(optimal), "episodes_to_optimal": optimal,
                                  "optimality_gap": sc["optimality_gap"], "env_steps": sc["env_steps"]},
-                                0, {}, never(solved), sc["team_steps"])
+                                0, {}, solved, sc["team_steps"])
     return {
         "trials": trials, "quick": quick, "map": cfgs["iql"].env.map, "optimal_team_steps": i["optimal_team_steps"],
         "reference": i["reference"], "team_lower_bound": i["team_lower_bound"], "algorithms": rows,
