@@ -272,7 +272,7 @@ def check_run_arguments(args: argparse.Namespace) -> None:
 
     if args.checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every must be >= 0 seconds, got {args.checkpoint_every:g}")
-    if args.trials < 1:
+    if args.trials is not None and args.trials < 1:
         raise UsageError(f"--trials must be >= 1, got {args.trials}")
     enable_compile_cache(not args.no_compile_cache)
 
@@ -399,8 +399,10 @@ def add_benchmark(subparsers) -> None:
     p.add_argument("--tasks", nargs="+", default=None, metavar="ID", help="task ids (default: every task)")
     p.add_argument("--algorithms", nargs="+", default=None, metavar="ALGO",
                    help="hierarchical, doc, iql, vdn, qmix, scripted (default: all)")
-    p.add_argument("--trials", type=int, default=8, help="independent seeds per task and algorithm (default 8)")
-    p.add_argument("--quick", action="store_true", help="reduced budgets: the whole suite in minutes, for a first look")
+    p.add_argument("--trials", type=int, default=None,
+                   help="independent seeds per task and algorithm (default 8; 4 with --quick)")
+    p.add_argument("--quick", action="store_true",
+                   help="reduced budgets and 4 trials: the whole suite in minutes, for a first look")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/benchmark)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
                    help="override a setting of every algorithm or of one (iql.train.episodes=100); repeatable")

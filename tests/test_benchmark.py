@@ -117,3 +117,5 @@ def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripte
     cfgs = benchmark.configs(suite.TASKS["two_rooms-v1"], "two_rooms", quick=True, sets=[])
     assert set(cfgs) == set(benchmark.ALGORITHMS)
     assert cfgs["iql"].train.episodes == 100 and cfgs["hierarchical"].hierarchical.coordinator.episodes == 30
+    assert benchmark.trial_count(None, quick=True) == 4 and benchmark.trial_count(None, quick=False) == 8
+    assert benchmark.trial_count(2, quick=True) == 2  # --trials, when given, wins
