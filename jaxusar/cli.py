@@ -321,8 +321,10 @@ def add_reproduce(subparsers) -> None:
         "reproduce", help="the paper's Table II and Figs. 4-6: every method, N trials each, in one command",
         description="Train the hierarchical method, option-critic (2, 4, 8 options) and IQL, N trials each in one "
                     "vmapped call per trainer, side by side, and play the scripted team (no learning); write "
-                    "DIR/results.json, DIR/table2.md, the figures and one folder per algorithm. Interrupted runs "
-                    "resume from their checkpoints.")
+                    "DIR/results.json, DIR/table2.md, the figures and one folder per algorithm. Where victims are "
+                    "drawn at reset, every team is scored on the same 32 draws against the clairvoyant optimum "
+                    "(normalized score). A method that cannot run on the map is left out, with why. Interrupted "
+                    "runs resume from their checkpoints.")
     p.add_argument("--trials", type=int, default=8, help="independent seeds per algorithm (default 8, as the paper)")
     p.add_argument("--map", default=None, metavar="NAME|PATH",
                    help="a shipped map or a path to a .txt layout (docs/maps.md); default two_rooms")

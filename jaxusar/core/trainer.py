@@ -326,6 +326,10 @@ class Trainer:
 
         A while loop, so a test that ends early costs only its own steps (under vmap: the longest lane's).
         """
+        return self.greedy_rollout(params, key, env_params)[:4]
+
+    def greedy_rollout(self, params, key, env_params=None):
+        """``greedy_episode``'s four values and the env state the episode ended in (what it saved)."""
         if hasattr(self.env, "reset_test"):  # an env whose tests start elsewhere than its training
             obs, env_state = self.env.reset_test(key, env_params)
         else:
@@ -344,7 +348,7 @@ class Trainer:
 
         c = jax.lax.while_loop(cond, body, (obs, env_state, self.learner.init_carry(), zero_f, zero_i, zero_i,
                                             false, false))
-        return c[3], c[4], c[7], optimal
+        return c[3], c[4], c[7], optimal, c[1]
 
     def coverage(self, params, env_params=None):
         """``(fraction, good)``: the env's exact fraction of initiation states from which the greedy policy

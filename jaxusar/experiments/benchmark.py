@@ -135,17 +135,6 @@ class Pair:
         return self.experiment.chains[0]
 
 
-def unsupported(algo: str, env) -> str | None:
-    """Why ``algo`` cannot run on ``env`` (one line), or None."""
-    if algo == "hierarchical":
-        from jaxusar.experiments import hierarchical
-
-        missing = hierarchical.unsupported_features(env)
-        if missing:
-            return f"the paper's method has no options yet for {', '.join(missing)}"
-    return None
-
-
 def configs(task: Task, map_: str, quick: bool, sets: list[str]) -> dict[str, config.ExperimentConfig]:
     """Each algorithm's config on ``task``: its defaults and the map's settings, the benchmark's own
     (SETTINGS), the task's observation and horizon, --quick budgets, then ``sets`` (all or ``algo.``-prefixed)."""
@@ -164,15 +153,6 @@ def configs(task: Task, map_: str, quick: bool, sets: list[str]) -> dict[str, co
         except config.ConfigError as err:
             raise config.ConfigError(f"{task.id}, {a}: {err}") from None
     return out
-
-
-def evaluate(stage, results: dict, env_params, keys: jax.Array) -> tuple[np.ndarray, np.ndarray]:
-    """(returns, steps) [trials, draws] of each trial's kept params' greedy episodes from ``keys``."""
-    trainer = stage.trainer
-    per_draw = jax.vmap(trainer.greedy_episode, in_axes=(None, 0, None))
-    per_trial = jax.vmap(per_draw, in_axes=(0, None, None if env_params is None else 0))
-    ret, steps, _, _ = jax.jit(per_trial)(results["best_params"], keys, env_params)
-    return np.asarray(ret), np.asarray(steps)
 
 
 def test_curve(stage, results: dict, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -201,15 +181,13 @@ def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
     chain = pair.chain
     last = chain[-1]
     results = {s.name: outcomes[f"{pair.prefix}/{s.name}"].results for s in chain}
-    env_params = last.env_params
-    if callable(env_params):
-        env_params = env_params(outcomes[f"{pair.prefix}/{chain[-2].name}"])
     trials = len(last.keys)
     offset = np.zeros(trials)
     for s in chain[:-1]:  # the earlier stages' lanes, summed per trial
         offset += np.asarray(results[s.name]["env_steps"], float).reshape(trials, -1).sum(1)
     final = results[last.name]
-    ret, steps = evaluate(last, final, env_params, keys)
+    ep = train.kept_episodes(chain, lambda s: outcomes[f"{pair.prefix}/{s.name}"], keys)
+    ret, steps = ep["return"], ep["steps"]
     score = final_scores(ret, steps, ref)
     x, test_ret, test_len = test_curve(last, final, offset)
     y = best_so_far(episode_scores(test_ret, test_len, ref["return"], ref["steps"]))
@@ -231,7 +209,7 @@ def plan(tasks: list[Task], algorithms: list[str], explicit: bool, out: Path, qu
     for task in tasks:
         mine = cfgs[task.id]
         env = envs.make(mine[ALGORITHMS[0]].env.map, **mine[ALGORITHMS[0]].env.overrides())
-        why = {a: unsupported(a, env) for a in algorithms}
+        why = {a: train.unsupported(a, env) for a in algorithms}
         for a, reason in why.items():
             if reason and explicit:
                 raise config.ConfigError(f"{a} cannot run {task.id}: {reason}")

@@ -12,7 +12,9 @@ fixed), and writes::
                           run seconds per trainer; seconds_by_algorithm (setup, compile, run, write); the
                           planner's optimum; this invocation's wall seconds; versions, config hashes, the
                           machine, workers, devices and processes
-    table2.md             the paper's Table II beside ours, and the paper's method stage by stage
+    table2.md             the paper's Table II beside ours, and the paper's method stage by stage; on a map
+                          whose victims are drawn at reset, each team's normalized score over the scripted
+                          team's fixed judging draws instead (``drawn_table``)
     fig4_subpolicies.png  sub-policy train/test steps vs episodes (paper Fig. 4; 8 sub-policies a page, then
                           fig4_subpolicies_2.png, ...)
     fig5_doc.png          option-critic, the K on one figure (paper Fig. 5)
@@ -21,8 +23,10 @@ fixed), and writes::
     hierarchical/ doc/ iql/   each algorithm's own results folder (metrics.json, curves.csv, params/, ...)
     checkpoints/          while running (removed at the end): every trainer's state, for resuming
 
-Each algorithm's settings are its defaults (= ``configs/<algo>.yaml``); ``--quick`` lowers the budgets
-(QUICK below) for a first look in minutes (docs/performance.md: its time). ``sets`` override settings of every algorithm
+An algorithm that cannot run on the map (``train.unsupported``: the paper's method on minimap, so far) is
+left out with why, printed and in results.json (``cannot_run``). Each algorithm's settings are its defaults
+(= ``configs/<algo>.yaml``); ``--quick`` lowers the budgets (QUICK below) for a first look in minutes
+(docs/performance.md: its time). ``sets`` override settings of every algorithm
 (``env.horizon=200``) or of one (``iql.train.episodes=100``).
 """
 
@@ -38,8 +42,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxusar import algos, config
+from jaxusar import algos, config, envs
 from jaxusar.core.trainer import trial_devices
+from jaxusar.experiments import scripted as sc
 from jaxusar.experiments import train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.stats import summarize
@@ -109,9 +114,12 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
     keys = train.trial_keys(cfgs["iql"].seed, trials, devices)
     if len({c.seed for c in cfgs.values()}) != 1:
         raise config.ConfigError("every algorithm must use the same seed (the trials are the same seeds)")
+    env = envs.make(cfgs["iql"].env.map, **cfgs["iql"].env.overrides())
+    cannot_run = {a: why for a in ALGORITHMS if (why := train.unsupported(a, env))}
+    algorithms = [a for a in ALGORITHMS if a not in cannot_run]
     with train.removed_if_refused(out):
         out = train.prepare_out(out, force, marker="results.json")
-        folders = {a: out / a for a in ALGORITHMS}
+        folders = {a: out / a for a in algorithms}
         for f in folders.values():
             f.mkdir(exist_ok=True)
         runner = Runner(out / "checkpoints", fingerprint(cfgs, trials), checkpoint_every, devices,
@@ -119,14 +127,16 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
         try:
             setup = {}
             experiments = {}
-            for a in ALGORITHMS:  # build (and plan) every algorithm before training any
+            for a in algorithms:  # build (and plan) every algorithm before training any
                 t = time.perf_counter()
                 experiments[a] = train.experiment(cfgs[a], keys)
                 setup[a] = time.perf_counter() - t
-            chains = [c for a in ALGORITHMS for c in experiments[a].chains]
+            chains = [c for a in algorithms for c in experiments[a].chains]
             chains.sort(key=lambda c: -sum(expected_cost(s) for s in c))  # longest first
             n_workers = train.worker_count(len(chains), workers)
             if not quiet:
+                for a, why in cannot_run.items():
+                    print(f"[reproduce] not running {a} on {env.layout.name}: {why}", flush=True)
                 print(f"[reproduce] {trials} trials; {len(chains)} trainers, {n_workers} at a time; "
                       f"{len(trial_devices(devices))} device(s) per trainer; writing {out}", flush=True)
             outcomes = runner.run(chains, workers=n_workers)
@@ -135,10 +145,14 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
             if jax.process_index() != 0:
                 return {}
 
-            per_algorithm, seconds = {}, {}
-            for a in ALGORITHMS:
+            per_algorithm, seconds, judged = {}, {}, {}
+            for a in algorithms:
                 t = time.perf_counter()
                 metrics = experiments[a].finish(folders[a], outcomes)
+                if env.n_drawn:  # judged on the scripted team's draws: one set for every algorithm and trial
+                    for chain in experiments[a].chains:
+                        episodes = train.kept_episodes(chain, lambda s: outcomes[s.name], sc.judging_keys(env))
+                        judged[row_key(a, chain)] = sc.judge(env, episodes)
                 (folders[a] / "metrics.json").write_text(json.dumps(metrics, indent=2))
                 per_algorithm[a] = metrics
                 stages = [outcomes[s.name] for chain in experiments[a].chains for s in chain]
@@ -148,11 +162,12 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
         except KeyboardInterrupt:
             raise runner.interrupted() from None
     for name, source in FIGURES.items():
-        shutil.copyfile(out / source, out / name)
+        if (out / source).exists():  # an algorithm that could not run on this map has none
+            shutil.copyfile(out / source, out / name)
     for page in sorted((out / "hierarchical").glob("fig4_subpolicies_*.png")):  # past 8 sub-policies
         shutil.copyfile(page, out / page.name)
 
-    results = summary(per_algorithm, cfgs, trials, quick)
+    results = summary(per_algorithm, cfgs, trials, quick, judged, cannot_run)
     results["command"] = command or shlex.join(
         ["jaxusar", "reproduce", "--trials", str(trials), "--out", str(out)] + (["--quick"] if quick else [])
         + (["--map", map] if map else [])
@@ -194,48 +209,114 @@ def _row(metrics: dict, budget: int, seconds: dict, solved: list, best_steps: li
             "env_steps": metrics["env_steps"], "seconds": seconds}
 
 
-def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool) -> dict:
-    """results.json: one row per algorithm (per K for option-critic), statistics over trials."""
-    h, d, i, sc = (per_algorithm[a] for a in ALGORITHMS)
-    ch = cfgs["hierarchical"]
-    stages = h["seconds"].values()
-    totals = {k: round(sum(st[k] for st in stages), 2) for k in ("compile", "run")}
-    n_sub, n_coord = ch.train.episodes, ch.hierarchical.coordinator.episodes
-    rows = {"hierarchical": _row(h, n_sub * len(h["tasks"]) + n_coord, {**totals, "stages": h["seconds"]},
-                                 h["coordinator_episodes_to_solved"], h["best_team_test_steps"])}
-    rows["hierarchical"].update(
-        coordinator_episodes_to_optimal=h["coordinator_episodes_to_optimal"],
-        subpolicy_episodes_to_optimal=h["subpolicy_episodes_to_optimal"],
-        subpolicy_episodes_to_start_optimal=h["subpolicy_episodes_to_start_optimal"],
-        episodes_to_optimal_single_start=h["episodes_to_optimal_single_start"],
-        subpolicy_coverage=h["subpolicy_coverage"], subpolicy_initiation_states=h["subpolicy_initiation_states"],
-        budget_episodes_per_subpolicy=n_sub, budget_episodes_coordinator=n_coord)
+def row_key(algo: str, chain: list) -> str:
+    """A chain's row in results.json: the algorithm, or ``doc_K<k>`` for option-critic's chain of K options."""
+    return f"doc_{chain[-1].name.split('/')[-1]}" if algo == "doc" else algo
+
+
+def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool, judged: dict | None = None,
+            cannot_run: dict | None = None) -> dict:
+    """results.json: one row per algorithm (per K for option-critic), statistics over trials. ``judged``:
+    on a map whose victims are drawn, each row's ``scripted.judge`` scores (normalized score, draws with
+    every victim saved, critical victims saved); ``cannot_run``: the algorithms left out, and why."""
+    rows = {}
+    if "hierarchical" in per_algorithm:
+        h, ch = per_algorithm["hierarchical"], cfgs["hierarchical"]
+        stages = h["seconds"].values()
+        totals = {k: round(sum(st[k] for st in stages), 2) for k in ("compile", "run")}
+        n_sub, n_coord = ch.train.episodes, ch.hierarchical.coordinator.episodes
+        rows["hierarchical"] = _row(h, n_sub * len(h["tasks"]) + n_coord, {**totals, "stages": h["seconds"]},
+                                    h["coordinator_episodes_to_solved"], h["best_team_test_steps"])
+        rows["hierarchical"].update(
+            coordinator_episodes_to_optimal=h["coordinator_episodes_to_optimal"],
+            subpolicy_episodes_to_optimal=h["subpolicy_episodes_to_optimal"],
+            subpolicy_episodes_to_start_optimal=h["subpolicy_episodes_to_start_optimal"],
+            episodes_to_optimal_single_start=h["episodes_to_optimal_single_start"],
+            subpolicy_coverage=h["subpolicy_coverage"], subpolicy_initiation_states=h["subpolicy_initiation_states"],
+            budget_episodes_per_subpolicy=n_sub, budget_episodes_coordinator=n_coord)
+    d, i, sc_ = (per_algorithm[a] for a in ("doc", "iql", "scripted"))
     for k, m in d["per_options"].items():
         rows[f"doc_K{k}"] = _row(m, cfgs["doc"].train.episodes, m["seconds"], m["episodes_to_solved"],
                                  m["best_test_steps"])
     rows["iql"] = _row(i, cfgs["iql"].train.episodes, i["seconds"], i["episodes_to_solved"], i["best_test_steps"])
-    if "optimal" in sc:  # fixed victims: optimal or not from the start, with no episode spent
-        optimal = [0 if ok else None for ok in sc["optimal"]]
-        solved = [None if gap is None else 0 for gap in sc["optimality_gap"]]
+    if "optimal" in sc_:  # fixed victims: optimal or not from the start, with no episode spent
+        optimal = [0 if ok else None for ok in sc_["optimal"]]
+        solved = [None if gap is None else 0 for gap in sc_["optimality_gap"]]
         rows["scripted"] = _row({**summarize(optimal), "episodes_to_optimal": optimal,
-                                 "optimality_gap": sc["optimality_gap"], "env_steps": sc["env_steps"]},
-                                0, {}, solved, sc["team_steps"])
+                                 "optimality_gap": sc_["optimality_gap"], "env_steps": sc_["env_steps"]},
+                                0, {}, solved, sc_["team_steps"])
+    else:  # drawn victims: judged as the learned rows are, nothing else to show
+        rows["scripted"] = {"budget_episodes": 0, "env_steps": sc_["env_steps"]}
+        judged = {**(judged or {}), "scripted": {k: v for k, v in sc_.items() if k in JUDGED}}
+    for key, j in (judged or {}).items():
+        rows[key]["judged"] = {k: v for k, v in j.items() if k in JUDGED}
     return {
         "trials": trials, "quick": quick, "map": cfgs["iql"].env.map, "optimal_team_steps": i["optimal_team_steps"],
         "reference": i["reference"], "team_lower_bound": i["team_lower_bound"], "algorithms": rows,
-        "paper_table2_best_of_8": PAPER_TABLE2,
+        "cannot_run": cannot_run or {}, "paper_table2_best_of_8": PAPER_TABLE2,
         "config_hashes": {a: c.hash() for a, c in cfgs.items()},
         "environment": train.environment_info(),
     }
+
+
+# what a row keeps of ``scripted.judge`` on a map whose victims are drawn
+JUDGED = ("normalized_score", "normalized", "fraction_all_saved", "critical_saved", "critical_victims",
+          "mean_return", "reference", "reference_return")
 
 
 def _episodes(x) -> str:
     return "never" if x is None else f"{x:,.0f}"
 
 
+def _label(key: str) -> str:
+    algo, _, k = key.partition("_K")
+    return LABELS[algo] + (f", {k} options" if k else "")
+
+
+def _not_run(results: dict) -> list[str]:
+    return [f"Not run on this map: {a} ({why})." for a, why in results.get("cannot_run", {}).items()]
+
+
+def drawn_table(results: dict) -> str:
+    """The table of a map whose victims are drawn at reset: each algorithm's normalized score over the
+    fixed judging draws (``scripted.judge``), with its spread over trials, draws with every victim saved and
+    critical victims saved."""
+    rows = {k: r for k, r in results["algorithms"].items() if "judged" in r}
+    first = next(iter(rows.values()))["judged"]
+    lines = [
+        f"# {results['map']}: normalized scores over {sc.DRAWS} fixed draws",
+        "",
+        f"Victims are drawn at every reset, so every team is judged on the same {sc.DRAWS} draws (reset keys "
+        f"from seed {sc.DRAW_SEED}, apart from every training seed): a trial's **normalized score** is its kept "
+        "greedy team's mean return over the draws divided by the clairvoyant "
+        f"{first['reference'].replace('clairvoyant ', '')}'s ({first['reference_return']:.0f}: the best return "
+        "knowing where the victims are, `planning.clairvoyant_reference`), which no team that must search can "
+        f"reach. {results['trials']} trials each; IQM = interquartile mean over trials with a 95% percentile-"
+        f"bootstrap interval. Regenerate with `{results['command']}`.",
+        "",
+        "| Method | Normalized score: median | IQM [95% CI] | Best trial | Worst trial | Draws with every victim "
+        f"saved | Critical saved (of {first['critical_victims']}) | Budget (episodes) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key, r in rows.items():
+        j = r["judged"]
+        n, (lo, hi) = j["normalized"], j["normalized"]["iqm_ci95"]
+        budget = f"{r['budget_episodes']:,}" if r["budget_episodes"] else "none"
+        lines.append(f"| {_label(key)} | {n['median']:.3f} | {n['iqm']:.3f} [{lo:.3f}, {hi:.3f}] | {n['best']:.3f} | "
+                     f"{min(j['normalized_score']):.3f} | {np.mean(j['fraction_all_saved']):.1%} | "
+                     f"{np.mean(j['critical_saved']):.2f} | {budget} |")
+    lines += ["", "Draws with every victim saved and critical saved: means over the trials (per trial in "
+              "results.json, `judged`).", *_not_run(results), "",
+              "Per-trial numbers, seconds and versions: results.json."]
+    return "\n".join(lines) + "\n"
+
+
 def table2(results: dict) -> str:
-    """The paper's Table II (best of 8) beside our best trial and the statistics over all trials."""
+    """The paper's Table II (best of 8) beside our best trial and the statistics over all trials; on a map
+    whose victims are drawn, ``drawn_table``."""
     rows = results["algorithms"]
+    if any("judged" in r for r in rows.values()):
+        return drawn_table(results)
     steps, bound = results["optimal_team_steps"], results.get("team_lower_bound")
     exact = results.get("reference", "optimum") == "optimum"
     paper_map = results["map"] == config.EnvConfig.map  # the paper's Table II is for its map only
@@ -257,8 +338,7 @@ def table2(results: dict) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, r in rows.items():
-        algo, _, k = key.partition("_K")
-        label = LABELS[algo] + (f", {k} options" if k else "")
+        label = _label(key)
         paper = PAPER_TABLE2.get(key, "-") if paper_map else "-"
         if r["budget_episodes"]:
             cells = _stats_cells(r["episodes_to_optimal"], r["budget_episodes"]) + f" | {r['budget_episodes']:,}"
@@ -278,6 +358,7 @@ def table2(results: dict) -> str:
               "of its sub-policies' "
               "episodes to optimal (from every initiation state, below) plus the coordinator's (the paper's "
               "accounting); the budget is the sum of the sub-policy and coordinator budgets."]
+    lines += _not_run(results)
     if h and "subpolicy_episodes_to_optimal" in h:
         lines += ["", "## The paper's method, stage by stage", ""] + stage_table(h, steps, exact)
     lines += ["", "Per-trial numbers, seconds and versions: results.json."]

@@ -193,6 +193,39 @@ def reference_metrics(reference: dict, results: dict) -> dict:
                                for s, ok in zip(results["best_length"], solved)]}
 
 
+def unsupported(algo: str, env) -> str | None:
+    """Why ``algo`` cannot run on ``env`` (one line), or None."""
+    if algo == "hierarchical":
+        from jaxusar.experiments import hierarchical
+
+        missing = hierarchical.unsupported_features(env)
+        if missing:
+            return f"the paper's method has no options yet for {', '.join(missing)}"
+    return None
+
+
+def kept_episodes(chain: list, outcome, keys: jax.Array) -> dict:
+    """Greedy team episodes of a chain's kept (best-tested) params, its last stage's, one per trial and
+    reset key: arrays [trials, keys] of ``return``, ``steps``, ``saved`` and ``critical_saved`` (victims
+    triaged, critical ones among them; the keys ``scripted.judge`` scores). ``outcome(stage)``: a stage's
+    ``Outcome``; a stage whose env params come from the one before (the coordinator's) gets them."""
+    from jaxusar.envs.usar import CRITICAL
+
+    last = chain[-1]
+    env_params = last.env_params
+    if callable(env_params):
+        env_params = env_params(outcome(chain[-2]))
+    trainer = last.trainer
+    per_key = jax.vmap(trainer.greedy_rollout, in_axes=(None, 0, None))
+    per_trial = jax.vmap(per_key, in_axes=(0, None, None if env_params is None else 0))
+    ret, steps, _, _, final = jax.jit(per_trial)(outcome(last).results["best_params"], keys, env_params)
+    world = getattr(trainer.env, "env", trainer.env)  # the coordinator's macro env wraps the team env
+    triaged = np.asarray(getattr(final, "env", final).triaged)  # the macro env's state holds the team env's
+    critical = np.asarray(world.victim_kind) == CRITICAL
+    return {"return": np.asarray(ret, float), "steps": np.asarray(steps, float), "saved": triaged.sum(-1),
+            "critical_saved": (triaged & critical).sum(-1)}
+
+
 def flat_metrics(cfg: ExperimentConfig, results: dict, reference: dict, outcome: Outcome, **extra) -> dict:
     """metrics.json of one Trainer's results (``extra`` keys go after ``algorithm``)."""
     eto = results["episodes_to_optimal"]
