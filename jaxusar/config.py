@@ -472,8 +472,12 @@ def map_defaults(data: dict) -> dict:
     defaults and under the map's settings file, a config file and ``--set``.
 
     - from 3 agents, the factored coordinator (one option head per agent);
-    - from 4 agents, options that run to their own end, with a coordinator budget three times the
-      default and epsilon decayed over three times as many decisions (300 and 600: office's tuning, seed 1000);
+    - from 4 agents, and where rubble lies, options that run to their own end, with a coordinator budget
+      three times the default and epsilon decayed over three times as many decisions (300 and 600:
+      office's tuning, seed 1000); where rubble lies five times (500 and 1,000): an engineer's CLEAR and
+      the medics' walks end far apart, and clearing pays only decisions later (two_rooms_rubble over exact
+      sub-policies: own termination 2/8 -> 8/8 trials at the optimum at seed 1000; x3 -> x5 30/32 -> 32/32
+      at seeds 1000-4000; benchmarks/README.md, "The paper's method on rubble");
     - where rubble lies, blocked agents step aside (``dodge``): waiting beside rubble, agents stand in
       others' way;
     - on a map of 512 cells or more, the sub-policies' one-hot input looked up, and for the paper's
@@ -493,10 +497,10 @@ def map_defaults(data: dict) -> dict:
     coordinator = {}
     if agents >= FACTORED_FROM_AGENTS:
         coordinator["kind"] = "factored"
-    if agents >= OWN_END_FROM_AGENTS:
-        default = CoordinatorConfig()
-        coordinator.update(termination="own", episodes=3 * default.episodes,
-                           eps_decay_steps=3 * default.eps_decay_steps)
+    if agents >= OWN_END_FROM_AGENTS or layout.rubble.any():
+        default, scale = CoordinatorConfig(), 5 if layout.rubble.any() else 3
+        coordinator.update(termination="own", episodes=scale * default.episodes,
+                           eps_decay_steps=scale * default.eps_decay_steps)
     if layout.rubble.any():
         coordinator["dodge"] = True
     if coordinator:

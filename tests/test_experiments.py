@@ -352,6 +352,10 @@ def test_map_derived_defaults_follow_the_team_and_the_map_size(tmp_path):
     assert cfg.dqn.one_hot_input and (cfg.train.chunk_steps, cfg.dqn.train_every) == (1000, 2)
     iql = config.load(None, [f"env.map={tmp_path / 'wide.txt'}"], algos.defaults("iql"))
     assert iql.dqn.one_hot_input and iql.dqn.train_every == config.DQNConfig().train_every  # chunking: hierarchical only
+    # rubble: blocked agents dodge, and options run to their own end (three agents, not four) on five times
+    # the budget and exploration
+    c, _ = coordinator("two_rooms_rubble")
+    assert (c.kind, c.termination, c.episodes, c.eps_decay_steps, c.dodge) == ("factored", "own", 500, 1000, True)
 
 
 def test_a_config_of_another_algorithm_says_how_to_start_from_it(tmp_path, capsys):

@@ -11,7 +11,8 @@ from jaxusar import config, envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import defaults as algos_defaults
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import CLEAR, NAVIGATE, TRIAGE, Rubble, next_hop, options_from_graph, waiting_cells
+from jaxusar.algos.options import (CLEAR, NAVIGATE, TRIAGE, Rubble, doorway_rubble_regions, method_env, next_hop,
+                                   options_from_graph, waiting_cells)
 from jaxusar.config import ConfigError
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.hierarchical import auto_option_timeout
@@ -648,6 +649,32 @@ def test_clear_options_are_the_engineers_and_navigation_waits_at_the_rubble(rubb
     assert not np.asarray(opts.can_initiate(bottom, none, 1, engineer))[triage_bottom]  # engineers never triage
     assert not np.asarray(opts.can_initiate(hall, none, 1, engineer))[-1]  # nothing left to clear
     assert bool(opts.terminated(len(opts.names) - 1, hall, none, 1)) and not bool(opts.terminated(4, hall, none, 0))
+
+
+def test_the_method_counts_rubble_in_a_doorway_as_the_hall():
+    """NAVIGATE-TO-BOTTOM-ROOM ends past the doorway's rubble, so an engineer that cleared it and walked in
+    stands aside (the optimum's engineer does); the env's own regions (what "view" shows) stay."""
+    from jaxusar.experiments.hierarchical import build
+
+    env = envs.make("two_rooms_rubble")
+    view = method_env(env)
+    hall, bottom = env.graph.index("hall_way"), env.graph.index("bottom_room")
+    assert np.argwhere(view.graph.cell_region != env.graph.cell_region).tolist() == [[6, 12], [7, 12]]
+    assert (view.graph.cell_region[6:8, 12] == hall).all() and (env.graph.cell_region[6:8, 12] == bottom).all()
+    two = envs.make("two_rooms")
+    assert method_env(two) is two  # no rubble: the same env, the same programs
+    # rubble inside a room (touching no other region) stays the room's; so does rubble whose loss would
+    # split the room in two
+    inner = envs.parse_layout("A....\n.....\n..r..\nE...V", "T top hall\nR r_room room\n---\nTTTTT\n"
+                              "RRRRR\nRRRRR\nRRRRR", "inner")
+    split = envs.parse_layout("A....\n..r..\nE.#.V", "T top hall\nR r_room room\n---\nTTTTT\nRRRRR\nRR#RR",
+                              "split")
+    for layout in (inner, split):
+        assert np.array_equal(doorway_rubble_regions(layout), layout.region), layout.name
+    b = build(config.load(None, ["env.map=two_rooms_rubble"], defaults=coord_defaults()))
+    k = [t.name for t in b["tasks"]].index("NAVIGATE-TO-BOTTOM-ROOM")
+    east = 0
+    assert b["task_params"].dist[k][3, 7, 10, east] == 3  # cleared: three steps, past the doorway's cells
 
 
 def test_steps_to_clear_counts_the_engineers_tool():

@@ -21,12 +21,18 @@ optimum has a medic walk to the rubble before any is cleared); the cell leaves t
 to clear the rubble from and a way to it (agents block each other: at a one-wide doorway the medic waits
 a step back).
 
+The method sees rubble in a room's doorway as the hall's (``doorway_rubble_regions``, ``method_env``): a
+room starts past the rubble at its edge, so NAVIGATE-TO-R ends past it, and an engineer that cleared
+the way and walked in stands aside instead of in the doorway (two_rooms_rubble's optimum does that).
+The env's own region grid (what "view" shows) is unchanged.
+
 Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
 cleared groups), usable inside jit.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -194,6 +200,47 @@ def next_hop(adjacency: np.ndarray) -> np.ndarray:
 
 
 NAVIGATIONS = ("adjacent", "chained", "goal")
+
+
+def doorway_rubble_regions(layout) -> np.ndarray:
+    """int32[H, W]: ``layout.region`` with each rubble group (4-connected) that lies in one room and touches
+    another region given to that region (a hall first, then the lowest index), unless that would empty the
+    room or split it in two: its doorway's rubble is the way in, not the room."""
+    region = layout.region.copy()
+    if layout.rubble is None:
+        return region
+    kinds = layout.region_kinds
+    label, n = scipy.ndimage.label(layout.rubble)
+    for g in range(1, n + 1):
+        group = label == g
+        room = set(region[group].tolist())
+        if len(room) != 1 or kinds[next(iter(room))] != "room":
+            continue
+        room = room.pop()
+        around = region[_neighbours(group)]
+        others = set(around[(around >= 0) & (around != room)].tolist())
+        if not others:
+            continue
+        rest = (region == room) & ~group
+        if not rest.any() or scipy.ndimage.label(rest)[1] != scipy.ndimage.label(region == room)[1]:
+            continue
+        region[group] = min(others, key=lambda q: (kinds[q] != "hall", q))
+    return region
+
+
+def method_env(env):
+    """``env`` as the hierarchical method sees it: the same env with ``doorway_rubble_regions``'s region grid
+    (``env`` itself where that changes nothing, as on every map without rubble). Only for stepping under
+    full observation: the method's regions must not change what "view" shows, and the method does not
+    run under "view" (``hierarchical.check_supported``)."""
+    region = doorway_rubble_regions(env.layout)
+    if np.array_equal(region, env.layout.region):
+        return env
+    assert env.observation == "full", "the method's regions would change what the agents see"
+    view = copy.copy(env)
+    view.layout = dataclasses.replace(env.layout, region=region)
+    view.graph = RegionGraph(view.layout)
+    return view
 
 
 def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) -> np.ndarray:

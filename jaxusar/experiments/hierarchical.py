@@ -30,7 +30,7 @@ from flax import serialization
 from jaxusar import envs, planning
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
-from jaxusar.algos.options import NAVIGATE, TRIAGE, check_option_kinds, options_from_graph
+from jaxusar.algos.options import NAVIGATE, TRIAGE, check_option_kinds, method_env, options_from_graph
 from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
 from jaxusar.experiments.plots import band, band_key, kept, reward_range, smooth, training_figure
@@ -46,10 +46,11 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     """Everything the two stages need. ``subpolicy_act(params, obs) -> action[1]``: how the coordinator's
     macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
     gives exact ones)."""
-    env = envs.make(cfg.env.map, **cfg.env.overrides())
+    world = envs.make(cfg.env.map, **cfg.env.overrides())
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
-    check_option_kinds(h.option_kinds, env)
-    check_supported(env)
+    check_option_kinds(h.option_kinds, world)
+    check_supported(world)
+    env = method_env(world)  # the same env, rubble in a doorway counted as the hall's
     options = options_from_graph(env.graph, h.navigation, env, h.option_kinds)
     if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
         raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
@@ -79,7 +80,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
                               optimal_slack=cfg.train.optimal_slack, stop_at_optimal=c.stop_at_optimal)
-    reference = planning.team_reference(env)
+    reference = planning.team_reference(world)
     optimal = reference["steps"]
     # the coordinator's chunks take a second or two, less than compiling a smaller batch's program: its
     # stopped trials stay in the batch (masked) and the stage ends once every trial has stopped
