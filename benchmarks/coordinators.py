@@ -5,7 +5,9 @@ distance tables) isolate the coordinator: each map's default coordinator setting
 (``--seed``), both kinds on the same keys, one after the other in one process. Reported per map and
 kind: trials whose greedy team test triaged every victim, trials that reached the reference (the exact
 optimum, or the lower bound where the joint search is out of reach), the median best team test as a
-ratio to the lower bound, the network's parameters, and compile + run seconds.
+ratio to the lower bound, the network's parameters, and compile + run seconds; on a map whose victims are
+drawn, each trial's kept coordinator judged on the fixed draws (``scripted.judge``: normalized score,
+draws with every victim saved, critical victims saved).
 
     python benchmarks/coordinators.py            # writes benchmarks/results/coordinators.json
     python benchmarks/coordinators.py --maps office --kinds factored \
@@ -27,7 +29,8 @@ from jaxusar import algos, config
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
 from jaxusar.experiments import hierarchical
-from jaxusar.experiments.train import environment_info
+from jaxusar.experiments import scripted as sc
+from jaxusar.experiments.train import environment_info, greedy_episodes
 
 MAPS = ("two_rooms", "three_rooms", "four_rooms", "office")
 
@@ -50,7 +53,13 @@ def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, 
     net = b["coord_learner"].dqn
     n_params = sum(x.size for x in jax.tree.leaves(net.network.init(jax.random.PRNGKey(0),
                                                                     jnp.zeros(b["macro"].obs_dim))))
-    return {"trials": trials, "solved": int(sum(solved)),
+    judged = {}
+    if b["env"].n_drawn:  # victims drawn at reset: the kept coordinators on the fixed judging draws
+        episodes = greedy_episodes(trainer, res["best_params"], sc.judging_keys(b["env"]), params)
+        j = sc.judge(b["env"], episodes)
+        judged = {"normalized_score": j["normalized_score"], "fraction_all_saved": j["fraction_all_saved"],
+                  "critical_saved": j["critical_saved"], "reference_return": j["reference_return"]}
+    return {"trials": trials, **judged, "solved": int(sum(solved)),
             "reached_reference": int(sum(e is not None for e in res["episodes_to_optimal"])),
             "reference": b["reference"], "episodes_to_reference": res["episodes_to_optimal"],
             "median_gap": None if not gaps else round(float(np.median(gaps)), 3),

@@ -61,8 +61,8 @@ def test_an_algorithm_on_a_task_it_cannot_run_is_a_one_line_error_before_anythin
     with pytest.raises(SystemExit, match="2"):
         main(argv)
     err = capsys.readouterr().err.strip()
-    assert err.startswith("jaxusar benchmark: error: hierarchical cannot run minimap-v1: the paper's method has no "
-                          "options yet for") and "\n" not in err
+    assert err.startswith("jaxusar benchmark: error: hierarchical cannot run minimap-v1: the paper's method does "
+                          "not master partial observability") and "\n" not in err
     assert not (tmp_path / "b").exists()
 
 

@@ -818,7 +818,7 @@ def test_dodge_lets_agents_meeting_head_on_in_the_open_step_aside(dodge):
     ("two_rooms", "[navigate,clear]", "without triage options no victim can be saved"),
     ("two_rooms", "[navigate,triage,clear]", "clear options need rubble and an engineer, and map 'two_rooms' has no rubble"),
     ("two_rooms", "[navigate,triage,search]", "search options need observation=view"),
-    ("minimap", "[navigate,triage,search]", "does not build search options yet"),
+    ("minimap", "[navigate,triage,search]", "does not build search options: its TRIAGE options per victim slot"),
 ])
 def test_an_option_kind_the_map_cannot_offer_is_a_one_line_error_before_anything_compiles(map_, kinds, message):
     cfg = config.load(None, [f"env.map={map_}", f"hierarchical.option_kinds={kinds}"],
@@ -834,3 +834,114 @@ def test_option_kinds_keep_only_the_named_kinds(rubble_options):
     assert some.names == tuple(n for n in every.names if not n.startswith("CLEAR"))
     keep = [every.names.index(n) for n in some.names]
     assert (some.open_from == every.open_from[..., keep]).all() and (some.kind != CLEAR).all()
+
+
+DRAWN = "random_victims: 1 1\ncritical_triage_steps: 2\ncritical_expires: 40\n---\n?.?#?.?\n...#...\nA.....A\n"
+DRAWN_REGIONS = "W west room\nE east room\nH hall hall\n---\nWWW#EEE\nWWW#EEE\nHHHHHHH\n"
+
+
+def _drawn_macro(tmp_path, observation="full"):
+    """The method on a small drawn-victim map (a regular and a critical victim drawn over four '?' cells,
+    two rooms), over exact sub-policies: (macro env, subpolicy params)."""
+    (tmp_path / "drawn.txt").write_text(DRAWN)
+    (tmp_path / "drawn.regions.txt").write_text(DRAWN_REGIONS)
+    cfg = config.load(None, [f"env.map={tmp_path / 'drawn.txt'}", f"env.observation={observation}"],
+                      defaults=coord_defaults())
+    probe = hierarchical.build(cfg)
+    act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
+    return hierarchical.build(cfg, subpolicy_act=act)["macro"], coord.CoordinatorParams(subpolicy=jnp.asarray(tables))
+
+
+def _joint(macro, options) -> jax.Array:
+    """The coordinator's action for per-agent ``options``: themselves (factored) or their joint index."""
+    if macro.factored:
+        return jnp.asarray(options, jnp.int32)
+    return jnp.asarray([int(np.ravel_multi_index(tuple(options), (macro.options.n,) * macro.n_agents))], jnp.int32)
+
+
+def test_drawn_victims_get_a_triage_option_per_room_that_works_slot_by_slot(tmp_path):
+    """Full observation: TRIAGE-IN-R is offered to a medic in R while a slot of R holds a living untriaged
+    victim, and a medic's NAVIGATE-TO-R likewise; over exact sub-policies it triages every victim of R, a
+    critical one with two actions (the sub-policy's input does not change until then), one slot task at a
+    time; the episode ends once every victim is triaged or dead."""
+    macro, p = _drawn_macro(tmp_path)
+    env, o = macro.env, macro.options
+    assert env.observation == "full" and macro.n_slots == 4 and macro.n_flags == 2
+    assert [o.names[k] for k in np.flatnonzero(o.kind == TRIAGE)] == ["TRIAGE-IN-WEST", "TRIAGE-IN-EAST"]
+    assert [tuple(c) for c in macro.slots] == [(0, 0), (0, 2), (0, 4), (0, 6)] and o.slot_flag.tolist() == [0, 0, 1, 1]
+    critical = int(np.flatnonzero(env.victim_kind == 1)[0])
+    rooms = []
+    for k in range(8):
+        _, s = macro.reset(jax.random.PRNGKey(k))
+        where = np.asarray(s.env.victim_pos)
+        np.testing.assert_array_equal(np.asarray(macro.flags(s.env)), [not (where[:, 1] < 3).any(),
+                                                                        not (where[:, 1] > 3).any()])
+        room = "WEST" if where[critical, 1] < 3 else "EAST"
+        rooms.append(room)
+        medic, o_nav, o_tri = ("WEST", "EAST").index(room), o.names.index(f"NAVIGATE-TO-{room}"), \
+            o.names.index(f"TRIAGE-IN-{room}")
+        for option in (o_nav, o_tri):
+            assert np.asarray(macro.valid_options(macro.observe(s)))[medic, option]
+            for _ in range(10):  # decisions until the medic's option ends (the other's may end first)
+                valid = np.asarray(macro.valid_options(macro.observe(s)))
+                action = np.array([np.flatnonzero(v)[0] for v in valid], np.int32)
+                action[medic] = option
+                _, s, _, _, _ = macro.step(None, s, _joint(macro, action), p)
+                if int(s.running[medic]) < 0:
+                    break
+        in_room = (where[:, 1] < 3) == (room == "WEST")
+        assert np.asarray(s.env.triaged)[in_room].all() and int(s.env.progress[critical]) == 2
+        assert bool(macro.flags(s.env)[("WEST", "EAST").index(room)])
+        avail = np.asarray(macro.available(*macro.decode(macro.observe(s))))
+        assert not avail[medic, o_tri] and not avail[1 - medic, o_nav]  # done: nothing left there
+    assert set(rooms) == {"WEST", "EAST"}
+    dead = s.env.replace(dead=jnp.ones_like(s.env.dead), triaged=jnp.zeros_like(s.env.triaged))
+    assert np.asarray(macro.flags(dead)).all()  # a dead victim's room has nothing left to save
+    _, _, _, done, info = macro.step(None, macro.wrap(dead), _joint(macro, [0, 0]), p)
+    assert bool(done) and bool(info["terminated"])
+
+
+def test_under_view_the_coordinator_knows_only_the_victims_the_team_has_seen(tmp_path, monkeypatch):
+    """The abstract state never holds an unseen victim's position: draws that differ only in unseen slots
+    look the same to the coordinator; a room is done only once seen holding no victim to save, and its
+    known victims are the ones seen."""
+    monkeypatch.setattr(hierarchical, "unsupported_features", lambda env: [])
+    macro, _ = _drawn_macro(tmp_path, "view")
+    env = macro.env
+    assert macro.view and env.view_radius is None  # the team sees a whole region at once
+    _, s = macro.reset(jax.random.PRNGKey(0))
+    assert not np.asarray(s.env.seen)[0].any()  # from the hall nobody sees into the rooms
+    assert not np.asarray(macro.slot_done(s.env)).any()  # unseen: may hold a victim
+    others = [macro.reset(jax.random.PRNGKey(k))[1] for k in range(1, 6)]
+    assert len({tuple(np.asarray(o.env.victim_pos).ravel()) for o in [s, *others]}) > 1
+    for other in others:  # other draws, the same abstract state
+        np.testing.assert_array_equal(np.asarray(macro.observe(s)), np.asarray(macro.observe(other)))
+    west = jnp.asarray(env.graph.cell_region == env.graph.index("west"))
+    seen = s.env.replace(seen=s.env.seen | west)
+    where = np.asarray(seen.victim_pos)
+    in_west = int((where[:, 1] < 3).sum())
+    assert bool(macro.flags(seen)[0]) == (in_west == 0) and not bool(macro.flags(seen)[1])
+    known = np.asarray(macro.known(seen)[0])
+    assert known.sum() == in_west and not known[2:].any()  # the west room's victims, none of the east's
+    assert not np.array_equal(np.asarray(macro.observe(macro.wrap(seen))), np.asarray(macro.observe(s)))
+
+
+def test_where_victims_are_drawn_every_test_plays_the_same_draws(tmp_path):
+    """``train.test_draws`` (8 by default where victims are drawn): a test's return is the mean over the same
+    draws at every test of a trial, so params that do not change score the same at every test (one draw
+    per test scores each test on a new draw)."""
+    (tmp_path / "drawn.txt").write_text(DRAWN)
+    (tmp_path / "drawn.regions.txt").write_text(DRAWN_REGIONS)
+    returns = {}
+    for draws in (1, 8):
+        sets = [f"env.map={tmp_path / 'drawn.txt'}", "hierarchical.coordinator.episodes=12",
+                "hierarchical.coordinator.kind=factored",  # its greedy choice is among valid options
+                "hierarchical.coordinator.learning_starts=100000", "hierarchical.coordinator.stop_at_optimal=false"]
+        cfg = config.load(None, sets + ([f"train.test_draws={draws}"] if draws == 1 else []), defaults=coord_defaults())
+        assert cfg.train.test_draws == draws  # 8: the map-derived default
+        probe = hierarchical.build(cfg)
+        act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
+        trainer = hierarchical.build(cfg, subpolicy_act=act)["coord_trainer"]
+        p = coord.CoordinatorParams(subpolicy=jnp.asarray(tables)[None])
+        returns[draws] = trainer.results(trainer.train(jax.random.PRNGKey(0)[None], env_params=p))["test_return"][0]
+    assert len(set(returns[1].tolist())) > 1 and len(set(returns[8].tolist())) == 1

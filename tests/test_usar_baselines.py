@@ -123,7 +123,8 @@ def test_option_critic_actors_see_their_own_rows_and_the_critic_all_of_them():
 
 
 @pytest.mark.parametrize("sets, missing", [
-    (["env.map=minimap"], "victims drawn at reset, multi-step triage, expiring critical victims"),
+    (["env.map=minimap"], "partial observability (observation=view; the method runs on this map with --set "
+                          "env.observation=full)"),
     (["env.observation=view"], "partial observability"),
 ])
 def test_hierarchical_says_in_one_line_which_feature_it_lacks(sets, missing):

@@ -1,7 +1,10 @@
 """The coordinator: SMDP Q-learning over joint options on the graph view (paper Sec. IV-C).
 
 The coordinator sees the abstract state (each agent's region one-hot, the triaged flags, on a map with
-rubble each rubble group's cleared flag: rubble is part of the floor plan every agent sees) and picks a
+rubble each rubble group's cleared flag: rubble is part of the floor plan every agent sees; where victims
+are drawn at reset, instead of triaged flags each room's flag (every slot of it done: ``flags``) and the
+known victims per room and kind, capped at ``KNOWN_CAP``; where critical victims expire, a coarse clock;
+never an unseen victim) and picks a
 joint option (one option per agent: 4 x 4 = 16 on the two-rooms map). ``coordinator.kind: flat`` (the
 paper) has one Q-value per joint option, options ^ medics of them (refused past ``max_joint_options``:
 office would need 15^4 = 50,625); ``factored`` has one option head per medic, their values summed
@@ -61,11 +64,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxusar.algos.options import TRIAGE as OPTION_TRIAGE
 from jaxusar.algos.options import Options
 from jaxusar.config import CoordinatorConfig, DQNConfig
 from jaxusar.core.learners import FactoredDQN, IndependentDQN, default_row, dqn_target
-from jaxusar.envs.usar import DIR_DELTA, FORWARD, TRIAGE, TURN_RIGHT, EnvState, USAREnv
+from jaxusar.envs.usar import CRITICAL, DIR_DELTA, FORWARD, TRIAGE, TURN_RIGHT, EnvState, USAREnv
 
+CLOCK_BINS = 4  # where critical victims expire, the abstract state's clock: t in quarters of their life
+KNOWN_CAP = 3  # where victims are drawn, the abstract state counts the known victims per room and kind up to this
 ALGORITHM = "hierarchical"  # `jaxusar train hierarchical`: sub-policies, then the coordinator
 EXPERIMENT = "jaxusar.experiments.hierarchical"
 DESCRIPTION = "The paper's method (Sec. IV): DQN option sub-policies on pseudo-rewards, then this SMDP coordinator."
@@ -136,7 +142,8 @@ class MacroEnv:
     def __init__(self, env: USAREnv, options: Options, policy_for: np.ndarray, subpolicy_act, observe,
                  gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
                  block_patience: int = 0, cells: bool = False, own_termination: bool = False,
-                 option_goals: np.ndarray | None = None, dodge: bool = False):
+                 option_goals: np.ndarray | None = None, dodge: bool = False, slot_task: np.ndarray | None = None,
+                 slot_dist: np.ndarray | None = None):
         self.env, self.options = env, options
         self.option_goals = np.zeros(options.n, np.int32) if option_goals is None else np.asarray(option_goals, np.int32)
         self.n_agents, self.horizon = env.n_agents, env.horizon
@@ -155,7 +162,23 @@ class MacroEnv:
         self.n_joint = options.n ** env.n_agents
         self.rubble = options.rubble  # None: no rubble, or options without CLEAR (one config)
         self.n_groups = self.rubble.n_groups if self.rubble is not None else 0
-        self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * env.n_victims + (1,) * self.n_groups
+        # victims (slots, where they are drawn: ``options.method_env``); the plain rules: a slot is done
+        # once its fixed victim is triaged, and the triaged flags are the whole of what the team knows
+        self.slots = np.asarray(env.layout.victim_pos, np.int32)
+        self.n_slots = len(self.slots)
+        self.view = env.observation == "view"
+        self.plain = not (env.n_drawn or env.expires or self.view)
+        self.slot_flag = options.slot_flag  # drawn victims: TRIAGE-IN-R's flag (its room done) for each slot
+        self.drawn = self.slot_flag is not None
+        if self.drawn:
+            assert slot_task is not None and slot_dist is not None, "drawn victims: each slot's task and distances"
+            self.slot_task, self.slot_dist = np.asarray(slot_task, np.int32), np.asarray(slot_dist, np.int32)
+        self.n_flags = int(self.slot_flag.max()) + 1 if self.drawn else self.n_slots
+        self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * self.n_flags + (1,) * self.n_groups
+        if self.drawn:  # per room: the known victims to save, regular and critical, capped
+            self.obs_blocks += (KNOWN_CAP + 1,) * self.n_flags * 2
+        if env.expires:  # a coarse clock: quarters of the time critical victims live, then after
+            self.obs_blocks += (CLOCK_BINS + 1,)
         if cells:
             self.obs_blocks += (env.height, env.width) * env.n_agents
         if own_termination:
@@ -170,11 +193,60 @@ class MacroEnv:
         return action if self.factored else jnp.asarray(self.joint)[action[0]]
 
     # -- abstract state --------------------------------------------------------------------------
+    def waiting(self, s: EnvState) -> tuple[jax.Array, jax.Array]:
+        """(bool[S], bool[S]): the slots that hold a living untriaged victim, and a critical one."""
+        at = jnp.all(s.victim_pos[None] == jnp.asarray(self.slots)[:, None], -1)  # [S, V]: victim v on slot s
+        waits = at & ~(s.triaged | s.dead)[None]
+        return waits.any(-1), (waits & jnp.asarray(self.env.victim_kind == CRITICAL)[None]).any(-1)
+
+    def flags(self, s: EnvState) -> jax.Array:
+        """bool[F]: each TRIAGE option's flag, the options' ``triaged``: its victim's slot done, or where
+        victims are drawn its room's every slot done."""
+        done = self.slot_done(s)
+        if not self.drawn:
+            return done
+        return ~jnp.zeros(self.n_flags, bool).at[jnp.asarray(self.slot_flag)].max(~done)
+
+    def known(self, s: EnvState) -> tuple[jax.Array, jax.Array]:
+        """(bool[S], bool[S]): the slots known to hold a victim to save, and a critical one (under "view":
+        seen; never an unseen victim)."""
+        waits, critical = self.waiting(s)
+        seen = s.seen[self.slots[:, 0], self.slots[:, 1]] if self.view else True
+        return waits & seen, critical & seen
+
+    def target_slot(self, s: EnvState, i: int, flag: jax.Array, done: jax.Array) -> jax.Array:
+        """int32: the slot TRIAGE-IN-R (flag ``flag``) works on for agent ``i``: among its room's slots not
+        done, a known critical victim first, then a known victim, then an unseen slot; the nearest (the slot
+        task's distance table, in the rubble's mode) first, then the lowest index. Along a slot's shortest
+        path its distance falls by one a step and no other's faster, so the target holds."""
+        waits, critical = self.known(s)
+        index = self.rubble.mode_of(s.rubble) if self.n_groups else 0
+        d = jnp.asarray(self.slot_dist)[:, index, s.agent_pos[i, 0], s.agent_pos[i, 1], s.agent_dir[i]]
+        rank = jnp.where(critical, 0, jnp.where(waits, 1, 2)) * (10 * self.horizon) + jnp.where(d >= 0, d, 9 * self.horizon)
+        ok = (jnp.asarray(self.slot_flag) == flag) & ~done
+        return jnp.argmin(jnp.where(ok, rank, jnp.iinfo(jnp.int32).max)).astype(jnp.int32)
+
+    def slot_done(self, s: EnvState) -> jax.Array:
+        """bool[S]: the slots the team knows hold no victim to save: under "view" those seen holding none
+        (empty, triaged, dead), else those holding none. The plain rules: the fixed victims' triaged flags."""
+        if self.plain:
+            return s.triaged
+        done = ~self.waiting(s)[0]
+        return done & s.seen[self.slots[:, 0], self.slots[:, 1]] if self.view else done
+
     def observe(self, s: MacroState) -> jax.Array:
         regions = self.env.graph.region_of(s.agent_pos)
-        parts = [jax.nn.one_hot(regions, self.n_regions).ravel(), s.triaged.astype(jnp.float32)]
+        parts = [jax.nn.one_hot(regions, self.n_regions).ravel(), self.flags(s.env).astype(jnp.float32)]
         if self.n_groups:  # each rubble group cleared (rubble is part of the floor plan every agent sees)
             parts.append(((self.config_of(s.env) >> jnp.arange(self.n_groups)) & 1).astype(jnp.float32))
+        if self.drawn:  # the known victims per room and kind: never an unseen one
+            waits, critical = self.known(s.env)
+            for x in (waits & ~critical, critical):
+                count = jnp.zeros(self.n_flags, jnp.int32).at[jnp.asarray(self.slot_flag)].add(x.astype(jnp.int32))
+                parts.append(jax.nn.one_hot(jnp.minimum(count, KNOWN_CAP), KNOWN_CAP + 1).ravel())
+        if self.env.expires:
+            quarter = jnp.minimum(s.env.t * CLOCK_BINS // self.env.critical_expires, CLOCK_BINS)
+            parts.append(jax.nn.one_hot(quarter, CLOCK_BINS + 1))
         if self.cells:
             parts += [jnp.concatenate([jax.nn.one_hot(s.agent_pos[i, 0], self.env.height),
                                        jax.nn.one_hot(s.agent_pos[i, 1], self.env.width)])
@@ -188,8 +260,8 @@ class MacroEnv:
         return self.rubble.config_of(self.rubble.mode_of(s.rubble)) if self.n_groups else jnp.zeros((), jnp.int32)
 
     def decode(self, obs: jax.Array):
-        """(regions int[n_agents], triaged bool[n_victims], config int32) of an abstract state."""
-        n, v = self.n_agents * self.n_regions, self.env.n_victims
+        """(regions int[n_agents], flags bool[F] (``flags``), config int32) of an abstract state."""
+        n, v = self.n_agents * self.n_regions, self.n_flags
         regions = jnp.argmax(obs[:n].reshape(self.n_agents, self.n_regions), -1)
         cleared = obs[n + v: n + v + self.n_groups] > 0.5
         config = jnp.sum(cleared.astype(jnp.int32) << jnp.arange(self.n_groups, dtype=jnp.int32))
@@ -235,15 +307,19 @@ class MacroEnv:
 
     def primitive_actions(self, s: EnvState, options: jax.Array, active: jax.Array, p: CoordinatorParams):
         """int32[n_agents]: each active agent's sub-policy action for its option; TRIAGE for idle ones."""
-        acts = []
+        acts, done = [], self.slot_done(s)
         regions = jnp.zeros(self.n_agents, jnp.int32) if self.region_invariant else \
             self.env.graph.region_of(s.agent_pos)
         for i in range(self.n_agents):
             o = options[i]
             task = jnp.asarray(self.policy_for)[i, regions[i], o]
-            params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
             victim = jnp.asarray(self.options.victim)[o]
-            flag = jnp.where(victim >= 0, s.triaged[jnp.maximum(victim, 0)], False)
+            if self.drawn:  # TRIAGE-IN-R: the task of the slot it works on
+                slot = self.target_slot(s, i, victim, done)
+                triage = jnp.asarray(self.options.kind)[o] == OPTION_TRIAGE
+                task, victim = jnp.where(triage, jnp.asarray(self.slot_task)[slot], task), jnp.where(triage, slot, -1)
+            params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
+            flag = jnp.where(victim >= 0, done[jnp.maximum(victim, 0)], False)
             goal = jnp.asarray(self.option_goals)[o]
             if self.n_groups:  # the sub-policy's index: goal x modes + which rubble cells are cleared
                 goal = goal * self.rubble.n_modes + self.rubble.mode_of(s.rubble)
@@ -254,7 +330,7 @@ class MacroEnv:
     def terminated(self, s: EnvState, options: jax.Array, active: jax.Array) -> jax.Array:
         """bool[n_agents]: the active medics whose options have reached their termination condition in ``s``."""
         done = jax.vmap(self.options.terminated, in_axes=(0, 0, None, None))
-        return active & done(options, self.env.graph.region_of(s.agent_pos), s.triaged, self.config_of(s))
+        return active & done(options, self.env.graph.region_of(s.agent_pos), self.flags(s), self.config_of(s))
 
     def unblocked(self) -> jax.Array:
         """int32[2, n_agents]: ``advance``'s blocked counts and dodge phases at a decision's start."""
@@ -334,7 +410,7 @@ class MacroEnv:
                             jnp.float32(self.invalid_penalty), jnp.ones((), jnp.int32), s.running, s.elapsed)
         st, ret, disc, k, running, elapsed = jax.lax.cond(valid, run, stand, s.env)
         s = MacroState(env=st, running=running, elapsed=elapsed)
-        terminated = jnp.all(st.triaged)
+        terminated = jnp.all(st.triaged) if self.plain else jnp.all(st.triaged | st.dead)
         done = terminated | (st.t >= self.horizon)
         info = {"terminated": terminated, "steps": k, "discounted_reward": disc, "valid": valid}
         return self.observe(s), s, ret, done, info

@@ -26,6 +26,17 @@ room starts past the rubble at its edge, so NAVIGATE-TO-R ends past it, and an e
 the way and walked in stands aside instead of in the doorway (two_rooms_rubble's optimum does that).
 The env's own region grid (what "view" shows) is unchanged.
 
+Victims drawn at reset (contract part 2): the places a victim may lie are *slots* (``victim_slots``: a
+fixed victim's cell or a '?' cell). A slot is *done* once the team knows it holds no victim to save:
+under "view" once it has been seen holding none (empty, triaged or dead); under full observation as
+soon as it holds none. A medic's NAVIGATE-TO-R is offered while a slot of R is not done (nothing else
+is there to go for; an engineer's always, to step out of the way), and TRIAGE-IN-R, one per room R that holds slots, to a medic in R likewise; it ends when every
+slot of R is done: it runs the sub-policy of one slot at a time (a task
+per slot, told its cell), a known critical victim first, then a known one, then an unseen slot, the
+nearest first (``coordinator.MacroEnv.target_slot``). Under "view" that is also the search: a medic sent to
+an unseen slot sees it on the way, and goes on once it is seen empty. A critical victim that needs
+several TRIAGE actions gets them: the sub-policy's input does not change until it is triaged.
+
 Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
 cleared groups), usable inside jit.
 """
@@ -113,6 +124,7 @@ class Options:
     group: np.ndarray | None = None     # int32[O]: the rubble group to clear (CLEAR), -1 for the others
     open_from: np.ndarray | None = None  # bool[C, R, O]: o may start in region q under config c (module doc)
     rubble: Rubble | None = None
+    slot_flag: np.ndarray | None = None  # int32[S]: drawn victims: each slot's room's TRIAGE flag; None: flag = victim
 
     def __post_init__(self):  # a map without rubble: one config, the plain rules
         if self.group is None:
@@ -130,7 +142,7 @@ class Options:
         """The options of the named ``kinds`` (``OPTION_KINDS``), in the same order."""
         keep = np.isin(self.kind, [OPTION_KINDS.index(k) for k in kinds])
         return Options(tuple(np.asarray(self.names)[keep]), self.kind[keep], self.region[keep], self.victim[keep],
-                       self.starts_from, self.group[keep], self.open_from[..., keep], self.rubble)
+                       self.starts_from, self.group[keep], self.open_from[..., keep], self.rubble, self.slot_flag)
 
     @property
     def role(self) -> np.ndarray:
@@ -140,12 +152,24 @@ class Options:
     def can_initiate(self, agent_region: jax.Array, triaged: jax.Array, config: jax.Array = 0,
                      role: jax.Array = MEDIC) -> jax.Array:
         """bool[O]: options whose initiation set holds for an agent of ``role`` in ``agent_region``, with
-        the groups of ``config`` cleared."""
+        the groups of ``config`` cleared; ``triaged``: each TRIAGE option's flag, its victim triaged (where
+        victims are drawn, its room done: ``coordinator.MacroEnv.flags``)."""
         kind, role_of = jnp.asarray(self.kind), jnp.asarray(self.role)
         victim_open = ~triaged[jnp.maximum(jnp.asarray(self.victim), 0)]
         group_open = ((config >> jnp.maximum(jnp.asarray(self.group), 0)) & 1) == 0
         ok = jnp.asarray(self.open_from)[config, agent_region] & ((role_of < 0) | (role_of == role))
-        return ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, True))
+        room_open = True
+        if self.slot_flag is not None:  # drawn victims: a medic's NAVIGATE-TO-R while R may hold a victim to save
+            flag = jnp.asarray(self.room_flag)  # (an engineer's anywhere: it may have to step out of the way)
+            room_open = (flag >= 0) & ~triaged[jnp.maximum(flag, 0)] | (role == ENGINEER)
+        return ok & jnp.where(kind == TRIAGE, victim_open, jnp.where(kind == CLEAR, group_open, room_open))
+
+    @property
+    def room_flag(self) -> np.ndarray:
+        """int32[O]: drawn victims: the TRIAGE flag of each NAVIGATE option's room (-1: none, or not NAVIGATE)."""
+        triage = {int(r): int(v) for k, r, v in zip(self.kind, self.region, self.victim) if k == TRIAGE}
+        return np.array([triage.get(int(r), -1) if k == NAVIGATE else -1 for k, r in zip(self.kind, self.region)],
+                        np.int32)
 
     def terminated(self, option: jax.Array, agent_region: jax.Array, triaged: jax.Array,
                    config: jax.Array = 0) -> jax.Array:
@@ -169,8 +193,9 @@ def check_option_kinds(kinds: tuple[str, ...], env) -> None:
         raise ConfigError(f"{where}: search options need observation=view (a room is searched once every cell of it "
                           f"was seen), and map {env.layout.name!r} is observed in full")
     if "search" in kinds:
-        raise ConfigError(f"{where}: the hierarchical method does not build search options yet (nor model "
-                          "observation=view); iql and doc train there")
+        raise ConfigError(f"{where}: the hierarchical method does not build search options: "
+                          "its TRIAGE options per victim slot would search, and it does not run under observation=view "
+                          "yet; iql and doc train there")
 
 
 def room_label(name: str) -> str:
@@ -228,17 +253,38 @@ def doorway_rubble_regions(layout) -> np.ndarray:
     return region
 
 
+def victim_slots(layout) -> np.ndarray:
+    """int32[S, 2]: every cell a victim may lie on, the method's *slots*: the fixed victims' cells, then the
+    '?' cells victims are drawn on (reading order). On a map without drawn victims, the victims' cells."""
+    return np.concatenate([layout.victim_pos, layout.random_cells]).astype(np.int32).reshape(-1, 2)
+
+
 def method_env(env):
-    """``env`` as the hierarchical method sees it: the same env with ``doorway_rubble_regions``'s region grid
-    (``env`` itself where that changes nothing, as on every map without rubble). Only for stepping under
-    full observation: the method's regions must not change what "view" shows, and the method does not
-    run under "view" (``hierarchical.check_supported``)."""
-    region = doorway_rubble_regions(env.layout)
-    if np.array_equal(region, env.layout.region):
+    """``env`` as the hierarchical method plans on it: the same env (its step, rules and observations
+    untouched) with a layout in which
+
+    * ``doorway_rubble_regions`` gives the region grid (rubble in a doorway is the hall's);
+    * where victims are drawn, ``victim_pos`` lists the ``victim_slots`` (a TRIAGE option per slot, told
+      its cell) and the '?' cells are obstacles, so that no sub-policy's way runs through a cell where
+      a victim may lie (victims block movement; their places vary).
+
+    ``env`` itself where that changes nothing (every map without rubble or drawn victims). The regions
+    may change only under full observation: under "view" they are what an agent sees."""
+    layout, region = env.layout, doorway_rubble_regions(env.layout)
+    changes = {}
+    if not np.array_equal(region, layout.region):
+        assert env.observation == "full", "the method's regions would change what the agents see"
+        changes["region"] = region
+    if len(layout.random_cells):
+        slots = victim_slots(layout)
+        obstacle = layout.obstacle.copy()
+        obstacle[tuple(layout.random_cells.T)] = True
+        kind = np.concatenate([layout.victim_kind, np.zeros(len(layout.random_cells), layout.victim_kind.dtype)])
+        changes.update(victim_pos=slots, victim_kind=kind, obstacle=obstacle)
+    if not changes:
         return env
-    assert env.observation == "full", "the method's regions would change what the agents see"
-    view = copy.copy(env)
-    view.layout = dataclasses.replace(env.layout, region=region)
+    view = copy.copy(env)  # the env's own arrays (``victim_pos``, ``_solid``, ...) stay: it steps as before
+    view.layout = dataclasses.replace(layout, **changes)
     view.graph = RegionGraph(view.layout)
     return view
 
@@ -293,7 +339,17 @@ def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=Non
     for r in graph.rooms:
         names.append(f"NAVIGATE-TO-{room_label(graph.names[r])}")
         kind.append(NAVIGATE), region.append(r), victim.append(-1)
-    for v, r in enumerate(graph.victim_region):
+    drawn = env is not None and len(env.layout.random_cells) > 0
+    slot_flag = None
+    if drawn:  # one TRIAGE-IN-R per room that holds a slot; its flag: the room done
+        rooms = sorted(set(graph.victim_region.tolist()), key=list(graph.victim_region).index)
+        for k, r in enumerate(rooms):
+            if graph.kinds[r] != "room":
+                raise ValueError(f"a victim may lie in {graph.names[r]!r}, a {graph.kinds[r]}: triage options need a room")
+            names.append(f"TRIAGE-IN-{room_label(graph.names[r])}")
+            kind.append(TRIAGE), region.append(int(r)), victim.append(k)
+        slot_flag = np.array([rooms.index(r) for r in graph.victim_region], np.int32)
+    for v, r in enumerate([] if drawn else graph.victim_region):
         if graph.kinds[r] != "room":
             raise ValueError(f"victim {v} lies in {graph.names[r]!r}, a {graph.kinds[r]}: triage options need a room")
         in_room = np.flatnonzero(graph.victim_region == r)
@@ -305,7 +361,7 @@ def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=Non
         kind.append(TRIAGE), region.append(int(r)), victim.append(v)
     starts_from = graph.adjacency if navigation == "adjacent" else next_hop(graph.adjacency) >= 0
     plain = Options(tuple(names), np.asarray(kind, np.int32), np.asarray(region, np.int32),
-                    np.asarray(victim, np.int32), starts_from)
+                    np.asarray(victim, np.int32), starts_from, slot_flag=slot_flag)
     options = plain if env is None or not env.has_rubble else _with_rubble(plain, graph, env)
     return options.only(kinds) if kinds else options
 
@@ -333,10 +389,12 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
     victim = np.concatenate([plain.victim, np.full(rubble.n_groups, -1, np.int32)])
     group = np.concatenate([np.full(plain.n, -1, np.int32), np.arange(rubble.n_groups, dtype=np.int32)])
     no_victim = np.full(env.layout.shape, -1, np.int32)
+    plan = env.layout.blocked.copy()  # blocked, or where a victim may lie (``method_env``)
+    plan[tuple(env.layout.victim_pos.T)] = True
     open_from = np.zeros((rubble.n_configs, graph.n_regions, len(names)), bool)
     for config in range(rubble.n_configs):
         uncleared = rubble.uncleared_in_config(config)
-        solid = env._solid | uncleared
+        solid = plan | uncleared
         open_cells = ~solid & (region >= 0)
 
         def from_all_cells(dist):  # bool[R]: every open cell of the region (there is one) reaches the goal
@@ -346,15 +404,16 @@ def _with_rubble(plain: Options, graph: RegionGraph, env) -> Options:
         for o in range(len(names)):
             if kind[o] == NAVIGATE:  # the room, or where rubble in the way is waited for
                 room = region == opt_region[o]
-                wait = waiting_cells(env._solid, uncleared, room)
+                wait = waiting_cells(plan, uncleared, room)
                 dist = steps_to_goal(solid, no_victim, goal_region_mask=room | wait)
                 open_from[config, :, o] = plain.starts_from[:, opt_region[o]] & from_all_cells(dist)
             elif kind[o] == TRIAGE:
-                target = no_victim.copy()
-                target[tuple(env.layout.victim_pos[victim[o]])] = 0  # the planner triages victim 0
+                target = no_victim.copy()  # the planner triages victim 0: the option's, or any slot of its room
+                slots = [victim[o]] if plain.slot_flag is None else np.flatnonzero(plain.slot_flag == victim[o])
+                target[tuple(env.layout.victim_pos[slots].T)] = 0
                 reach = from_all_cells(steps_to_goal(solid, target, triage=True))
                 open_from[config, opt_region[o], o] = reach[opt_region[o]]
             else:
                 reach = from_all_cells(steps_to_goal(solid, no_victim, goal_region_mask=beside[group[o]] & ~solid))
                 open_from[config, :, o] = touches[:, group[o]] & reach
-    return Options(names, kind, opt_region, victim, plain.starts_from, group, open_from, rubble)
+    return Options(names, kind, opt_region, victim, plain.starts_from, group, open_from, rubble, plain.slot_flag)

@@ -209,15 +209,22 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
                 if graph.adjacency[graph.cell_region[r, c], options.region[o]]:
                     tasks.append(_navigation_task(env, f"agent{i}:{options.names[o]}", int(options.region[o]), o, i,
                                                   navigate_start))
-        else:
+        else:  # TRIAGE-v, or where victims are drawn a task per slot of TRIAGE-IN-R
             room = options.region[o]
-            victim_cell = tuple(layout.victim_pos[options.victim[o]])
-            in_room = [tuple(x) for x in np.argwhere(graph.cell_region == room) if tuple(x) != victim_cell]
-            cells = in_room if triage_start == "room" else \
-                [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
-            starts = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32))
-            initiation = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in in_room for d in range(4)], np.int32))
-            tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, int(options.victim[o])))
+            slots = [int(options.victim[o])] if options.slot_flag is None else \
+                np.flatnonzero(options.slot_flag == options.victim[o]).tolist()
+            for v in slots:
+                victim_cell = tuple(layout.victim_pos[v])
+                in_room = [tuple(x) for x in np.argwhere((graph.cell_region == room) & ~layout.blocked)
+                           if tuple(x) != victim_cell]  # blocked: where victims are drawn (``options.method_env``)
+                cells = in_room if triage_start == "room" else \
+                    [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
+                starts = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32))
+                initiation = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in in_room for d in range(4)],
+                                                        np.int32))
+                name = options.names[o] if options.slot_flag is None else \
+                    f"TRIAGE-SLOT-{v}-IN-{room_label(graph.names[room])}"
+                tasks.append(Task(name, o, -1, starts, starts, initiation, -1, v))
     if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
         tasks = [_reachable(env, t) for t in tasks]
     return tasks

@@ -367,8 +367,15 @@ class Trainer:
         episode); else the test episode decides both."""
         test = s.snaps.test_index[j]
         params = jax.tree.map(lambda x: x[j], s.snaps.params)
-        key = jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), test)
-        ret, length, terminated, optimal_steps = self.greedy_episode(params, key, s.env_params)
+        if self.cfg.test_draws == 1:
+            key = jax.random.fold_in(jax.random.fold_in(s.key, 0x7E57), test)
+            ret, length, terminated, optimal_steps = self.greedy_episode(params, key, s.env_params)
+        else:  # the same draws at every test of the trial: the kept params are the best on them
+            keys = jax.random.split(jax.random.fold_in(s.key, 0x7E57), self.cfg.test_draws)
+            ret, length, terminated, optimal_steps = jax.vmap(self.greedy_episode, in_axes=(None, 0, None))(
+                params, keys, s.env_params)
+            ret, terminated, optimal_steps = ret.mean(), terminated.all(), optimal_steps.max()
+            length = jnp.round(length.mean()).astype(length.dtype)
         cov, good = self.coverage(params, s.env_params)
         used = test != NO_TEST
         env_params = s.env_params

@@ -20,6 +20,7 @@ Output folder::
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -33,6 +34,7 @@ from jaxusar.algos import subpolicies as sp
 from jaxusar.algos.options import NAVIGATE, TRIAGE, check_option_kinds, method_env, options_from_graph
 from jaxusar.config import ConfigError, ExperimentConfig, TrainConfig
 from jaxusar.core import Trainer
+from jaxusar.experiments import scripted as sc
 from jaxusar.experiments.plots import band, band_key, kept, reward_range, smooth, training_figure
 from jaxusar.experiments.runner import Stage
 from jaxusar.experiments.stats import in_words, summarize
@@ -65,7 +67,8 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
     min_steps = int(min(params.dist[k, s[:, 3], s[:, 0], s[:, 1], s[:, 2]].min() for k, s in
                         enumerate(t.starts for t in tasks)))
-    sub_trainer = Trainer(senv, sub_learner, cfg.train, learning_starts=cfg.dqn.learning_starts,
+    sub_train = dataclasses.replace(cfg.train, test_draws=1)  # sub-tasks draw nothing; coverage judges them
+    sub_trainer = Trainer(senv, sub_learner, sub_train, learning_starts=cfg.dqn.learning_starts,
                           train_every=cfg.dqn.train_every, gradient_steps=cfg.dqn.gradient_steps, optimal_steps=0,
                           min_episode_steps=max(min_steps, 1))
     table = sp.policy_table(env, options, tasks, h.navigation)
@@ -76,10 +79,11 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
                            factored=c.kind == "factored", block_patience=c.block_patience,
                            dodge=c.dodge, cells=c.features == "cells", own_termination=c.termination == "own",
-                           option_goals=sp.option_goals(options, tasks))
+                           option_goals=sp.option_goals(options, tasks), **slot_tables(options, tasks, params))
     coord_learner = coord.make_learner(macro, c)
     coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
-                              optimal_slack=cfg.train.optimal_slack, stop_at_optimal=c.stop_at_optimal)
+                              optimal_slack=cfg.train.optimal_slack, stop_at_optimal=c.stop_at_optimal,
+                              test_draws=cfg.train.test_draws)
     reference = planning.team_reference(world)
     optimal = reference["steps"]
     # the coordinator's chunks take a second or two, less than compiling a smaller batch's program: its
@@ -93,22 +97,37 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                 optimal=optimal, reference=reference)
 
 
+def slot_tables(options, tasks, params) -> dict:
+    """Where victims are drawn (``options.slot_flag``), what ``MacroEnv`` needs to run TRIAGE-IN-R one
+    slot at a time: ``slot_task`` int32[S] (each slot's task) and ``slot_dist`` (its distance table);
+    else nothing."""
+    if options.slot_flag is None:
+        return {}
+    task = np.full(len(options.slot_flag), -1, np.int32)
+    for k, t in enumerate(tasks):
+        if t.victim >= 0:
+            task[t.victim] = k
+    return {"slot_task": task, "slot_dist": np.asarray(params.dist)[task]}
+
+
 def unsupported_features(env) -> list[str]:
-    """The features of ``env`` (contract part 2) that the options, sub-policies and coordinator do not
-    model yet: TRIAGE options end at a one-action triage of a victim known from the start, and the
-    coordinator sees every victim's triaged flag. (Rubble and engineers they do: CLEAR options.)"""
-    missing = [("victims drawn at reset", env.n_drawn > 0), ("multi-step triage", env.multi_step),
-               ("expiring critical victims", env.expires),
-               ("partial observability (observation=view)", env.observation == "view")]
-    return [name for name, present in missing if present]
+    """The features of ``env`` (contract part 2) the method does not run on yet. Rubble and engineers it
+    does (CLEAR options); victims drawn at reset, multi-step triage and expiry too (TRIAGE-IN-R options
+    that work slot by slot, ``options.method_env``; the coordinator's room flags and known victims,
+    ``coordinator.MacroEnv``). Under "view" the same options search and the abstract state holds only what
+    the team has seen (tested), but the method is measured there only over exact sub-policies so far:
+    training its sub-policies (a task per victim slot, 42 on minimap) does not yet fit a run's budget."""
+    view = env.observation == "view"
+    return ["partial observability (observation=view; the method runs on this map with "
+            "--set env.observation=full)"] if view else []
 
 
 def check_supported(env) -> None:
     """A one-line ConfigError, before anything compiles, where ``env`` has a feature the method lacks."""
     missing = unsupported_features(env)
     if missing:
-        raise ConfigError(f"the hierarchical method cannot run on map {env.layout.name!r}: its options and "
-                          f"sub-policies do not model {', '.join(missing)} yet (iql and doc train there)")
+        raise ConfigError(f"the hierarchical method cannot run on map {env.layout.name!r}: it does not master "
+                          f"{', '.join(missing)} yet (iql and doc train there)")
 
 
 def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> None:
@@ -129,9 +148,12 @@ def auto_option_timeout(env, options, tasks, params) -> int:
     """``coordinator.option_timeout: 0``: 1.5x the longest shortest path of any option from any state it
     may start in (a chained NAVIGATE across the map included), at least 50 steps (two_rooms: 50)."""
     longest, region, modes = 0, env.graph.cell_region, len(params.dist[0]) // len(params.goal_region[0])
+    # where victims are drawn, TRIAGE-IN-R visits its room's slots one after another
+    per_option = 1 if options.slot_flag is None else int(np.bincount(options.slot_flag).max())
     for k, t in enumerate(tasks):
         if t.victim >= 0 or t.clears:
-            longest = max(longest, int(params.dist[k][tuple(t.initiation[:, [3, 0, 1, 2]].T)].max()))
+            steps = int(params.dist[k][tuple(t.initiation[:, [3, 0, 1, 2]].T)].max())
+            longest = max(longest, steps * (per_option if t.victim >= 0 else 1))
         elif t.option >= 0 or t.goals:  # a NAVIGATE option's task: its table is the room's distance from anywhere
             for g, room in enumerate(t.goal_regions):
                 starts = options.starts_from[np.maximum(region, 0), room] & (region >= 0)
@@ -139,15 +161,16 @@ def auto_option_timeout(env, options, tasks, params) -> int:
     return max(50, -(-3 * longest // 2))
 
 
-def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params):
-    """The greedy coordinator's team episode, primitive step by primitive step (for pictures)."""
+def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params, key=None):
+    """The greedy coordinator's team episode, primitive step by primitive step (for pictures); ``key``: the
+    reset's (default: the first judging draw, ``scripted.judging_keys``)."""
     p = coord.CoordinatorParams(subpolicy=sub_params)
     decide = jax.jit(lambda obs: macro.options_of(learner.greedy_act(coord_params, obs, None)[0]))
     info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_options(obs)))
     advance = jax.jit(lambda s, o, a, b: macro.advance(s, o, a, b, p))
     over = jax.jit(macro.option_over)
     settle = jax.jit(macro.still_running)
-    obs, ms = macro.reset(None)
+    obs, ms = macro.reset(sc.judging_keys(macro.env)[0] if key is None else key)
     s = ms.env
     states, rewards, decisions = [s], [], []
     done = False

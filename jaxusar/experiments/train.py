@@ -200,25 +200,29 @@ def unsupported(algo: str, env) -> str | None:
 
         missing = hierarchical.unsupported_features(env)
         if missing:
-            return f"the paper's method has no options yet for {', '.join(missing)}"
+            return f"the paper's method does not master {', '.join(missing)} yet"
     return None
 
 
 def kept_episodes(chain: list, outcome, keys: jax.Array) -> dict:
-    """Greedy team episodes of a chain's kept (best-tested) params, its last stage's, one per trial and
-    reset key: arrays [trials, keys] of ``return``, ``steps``, ``saved`` and ``critical_saved`` (victims
-    triaged, critical ones among them; the keys ``scripted.judge`` scores). ``outcome(stage)``: a stage's
-    ``Outcome``; a stage whose env params come from the one before (the coordinator's) gets them."""
-    from jaxusar.envs.usar import CRITICAL
-
+    """``greedy_episodes`` of a chain's kept (best-tested) params, its last stage's. ``outcome(stage)``: a
+    stage's ``Outcome``; a stage whose env params come from the one before (the coordinator's) gets them."""
     last = chain[-1]
     env_params = last.env_params
     if callable(env_params):
         env_params = env_params(outcome(chain[-2]))
-    trainer = last.trainer
+    return greedy_episodes(last.trainer, outcome(last).results["best_params"], keys, env_params)
+
+
+def greedy_episodes(trainer, params, keys: jax.Array, env_params=None) -> dict:
+    """Greedy team episodes of per-trial ``params`` (and ``env_params``, if any), one per trial and reset
+    key: arrays [trials, keys] of ``return``, ``steps``, ``saved`` and ``critical_saved`` (victims
+    triaged, critical ones among them; the keys ``scripted.judge`` scores)."""
+    from jaxusar.envs.usar import CRITICAL
+
     per_key = jax.vmap(trainer.greedy_rollout, in_axes=(None, 0, None))
     per_trial = jax.vmap(per_key, in_axes=(0, None, None if env_params is None else 0))
-    ret, steps, _, _, final = jax.jit(per_trial)(outcome(last).results["best_params"], keys, env_params)
+    ret, steps, _, _, final = jax.jit(per_trial)(params, keys, env_params)
     world = getattr(trainer.env, "env", trainer.env)  # the coordinator's macro env wraps the team env
     triaged = np.asarray(getattr(final, "env", final).triaged)  # the macro env's state holds the team env's
     critical = np.asarray(world.victim_kind) == CRITICAL
