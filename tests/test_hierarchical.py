@@ -338,7 +338,7 @@ def _policy_tables(senv, params, k, noise: float, seed: int):
     replaced by a random action in a ``noise`` fraction of the states; and the numpy successor tables to
     roll it out."""
     nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
-                                                                            jnp.asarray(params.victim_at[k])))
+                                                                            jnp.asarray(params.victim_at[k][0])))
     table = np.asarray(sp.exact_subpolicies(senv, params)[1][k])
     rng = np.random.default_rng(seed)
     flip = rng.random(table.shape) < noise
@@ -945,3 +945,19 @@ def test_where_victims_are_drawn_every_test_plays_the_same_draws(tmp_path):
         p = coord.CoordinatorParams(subpolicy=jnp.asarray(tables)[None])
         returns[draws] = trainer.results(trainer.train(jax.random.PRNGKey(0)[None], env_params=p))["test_return"][0]
     assert len(set(returns[1].tolist())) > 1 and len(set(returns[8].tolist())) == 1
+
+
+def test_a_room_triage_no_rubble_changes_is_learned_in_one_mode():
+    """minimap (full observation): TRIAGE-IN-R, one task per room told the slot, has states in rubble mode 0
+    only when no mode's rubble changes its shortest paths (the rooms' doorway rubble lies in the hall);
+    navigation and clearing keep every mode."""
+    cfg = config.load(None, ["env.map=minimap", "env.observation=full"], defaults=coord_defaults())
+    b = hierarchical.build(cfg)
+    modes = Rubble.of(b["env"].layout).n_modes
+    triage = [t for t in b["tasks"] if t.targets]
+    assert len(triage) == 6 and sum(len(t.targets) for t in triage) == len(b["env"].layout.random_cells)
+    for t in b["tasks"]:
+        assert t.every_mode == (not t.targets), t.name
+        in_modes = set((t.initiation[:, 3] % modes).tolist())
+        assert in_modes == {0} if t.targets else len(in_modes) > 1, t.name
+    assert set(b["macro"].slot_every_mode.tolist()) == {False}

@@ -143,7 +143,8 @@ class MacroEnv:
                  gamma: float, invalid_penalty: float, option_timeout: int = 50, factored: bool = False,
                  block_patience: int = 0, cells: bool = False, own_termination: bool = False,
                  option_goals: np.ndarray | None = None, dodge: bool = False, slot_task: np.ndarray | None = None,
-                 slot_dist: np.ndarray | None = None):
+                 slot_goal: np.ndarray | None = None, slot_dist: np.ndarray | None = None,
+                 slot_every_mode: np.ndarray | None = None):
         self.env, self.options = env, options
         self.option_goals = np.zeros(options.n, np.int32) if option_goals is None else np.asarray(option_goals, np.int32)
         self.n_agents, self.horizon = env.n_agents, env.horizon
@@ -171,8 +172,11 @@ class MacroEnv:
         self.slot_flag = options.slot_flag  # drawn victims: TRIAGE-IN-R's flag (its room done) for each slot
         self.drawn = self.slot_flag is not None
         if self.drawn:
-            assert slot_task is not None and slot_dist is not None, "drawn victims: each slot's task and distances"
-            self.slot_task, self.slot_dist = np.asarray(slot_task, np.int32), np.asarray(slot_dist, np.int32)
+            assert slot_task is not None, "drawn victims: each slot's task, goal and distances (slot_tables)"
+            self.slot_task, self.slot_goal, self.slot_dist = (np.asarray(x, np.int32) for x in (slot_task, slot_goal,
+                                                                                                 slot_dist))
+            self.slot_every_mode = np.ones(self.n_slots, bool) if slot_every_mode is None else \
+                np.asarray(slot_every_mode, bool)
         self.n_flags = int(self.slot_flag.max()) + 1 if self.drawn else self.n_slots
         self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * self.n_flags + (1,) * self.n_groups
         if self.drawn:  # per room: the known victims to save, regular and critical, capped
@@ -314,15 +318,20 @@ class MacroEnv:
             o = options[i]
             task = jnp.asarray(self.policy_for)[i, regions[i], o]
             victim = jnp.asarray(self.options.victim)[o]
-            if self.drawn:  # TRIAGE-IN-R: the task of the slot it works on
+            goal = jnp.asarray(self.option_goals)[o]
+            if self.drawn:  # TRIAGE-IN-R: its room's task, told the slot it works on
                 slot = self.target_slot(s, i, victim, done)
                 triage = jnp.asarray(self.options.kind)[o] == OPTION_TRIAGE
-                task, victim = jnp.where(triage, jnp.asarray(self.slot_task)[slot], task), jnp.where(triage, slot, -1)
+                task, goal = (jnp.where(triage, jnp.asarray(a)[slot], b) for a, b in ((self.slot_task, task),
+                                                                                      (self.slot_goal, goal)))
+                victim = jnp.where(triage, slot, -1)
             params = jax.tree.map(lambda x: x[jnp.maximum(task, 0)], p.subpolicy)
             flag = jnp.where(victim >= 0, done[jnp.maximum(victim, 0)], False)
-            goal = jnp.asarray(self.option_goals)[o]
             if self.n_groups:  # the sub-policy's index: goal x modes + which rubble cells are cleared
-                goal = goal * self.rubble.n_modes + self.rubble.mode_of(s.rubble)
+                mode = self.rubble.mode_of(s.rubble)
+                if self.drawn:  # a TRIAGE-IN-R task no rubble matters to runs in mode 0
+                    mode = jnp.where(triage & ~jnp.asarray(self.slot_every_mode)[slot], 0, mode)
+                goal = goal * self.rubble.n_modes + mode
             a = self.subpolicy_act(params, self.observe_agent(s.agent_pos[i], s.agent_dir[i], flag, goal))[0]
             acts.append(jnp.where(active[i], a, TRIAGE))
         return jnp.stack(acts).astype(jnp.int32)

@@ -30,12 +30,13 @@ Victims drawn at reset (contract part 2): the places a victim may lie are *slots
 fixed victim's cell or a '?' cell). A slot is *done* once the team knows it holds no victim to save:
 under "view" once it has been seen holding none (empty, triaged or dead); under full observation as
 soon as it holds none. A medic's NAVIGATE-TO-R is offered while a slot of R is not done (nothing else
-is there to go for; an engineer's always, to step out of the way), and TRIAGE-IN-R, one per room R that holds slots, to a medic in R likewise; it ends when every
-slot of R is done: it runs the sub-policy of one slot at a time (a task
-per slot, told its cell), a known critical victim first, then a known one, then an unseen slot, the
-nearest first (``coordinator.MacroEnv.target_slot``). Under "view" that is also the search: a medic sent to
-an unseen slot sees it on the way, and goes on once it is seen empty. A critical victim that needs
-several TRIAGE actions gets them: the sub-policy's input does not change until it is triaged.
+is there to go for; an engineer's always, to step out of the way). TRIAGE-IN-R, one per room R that
+holds slots, is offered to a medic in R likewise and ends when every slot of R is done; its sub-policy
+(one task per room, told the slot as its goal) works on one slot at a time: a known critical victim
+first, then a known one, then an unseen slot, the nearest first (``coordinator.MacroEnv.target_slot``).
+Under "view" that is also the search: a medic sent to an unseen slot sees it on the way, and goes on
+once it is seen empty. A critical victim that needs several TRIAGE actions gets them: the sub-policy's
+input does not change until it is triaged.
 
 Initiation and termination are pure functions of the abstract state (agent region, triaged flags, the
 cleared groups), usable inside jit.

@@ -41,6 +41,11 @@ cut off from its room by rubble (in a mode) instead ends, in training, with a no
 beside the rubble in its way (``options.waiting_cells``): its greedy policy then waits there, in the
 team env, until a clearing changes its mode and it goes on into the room.
 
+Victims drawn at reset (``options.method_env``): TRIAGE-IN-R is one goal-conditioned task per room,
+its goals the room's slots (``Task.targets``; the cells where a victim may lie, obstacles in every
+task), trained and judged from every cell of the room with every goal; the coordinator's macro env tells
+it the slot it works on.
+
 Every task has the same observation shape: one agent's one-hot row, col and dir, plus one flag
 (the task's victim triaged; 0 for NAVIGATE), on a map with rubble a flag per rubble cell (cleared), and
 with ``goal`` navigation a one-hot of the goal
@@ -81,11 +86,13 @@ class Task:
     victim: int           # the victim to triage (TRIAGE), -1 for NAVIGATE
     goals: tuple[int, ...] = ()  # goal-conditioned navigation: the region of each goal index
     clears: int = 0       # CLEAR: the mode bits of its rubble group (done when all are cleared); 0 otherwise
+    targets: tuple[int, ...] = ()  # goal-conditioned TRIAGE (drawn victims): the slot of each goal index
+    every_mode: bool = True  # False: its states are mode 0's only (no mode's rubble changes its way)
 
     @property
     def goal_regions(self) -> tuple[int, ...]:
         """The region to reach for each goal index (-1: none, a TRIAGE task)."""
-        return self.goals or (self.region,)
+        return self.goals or (-1,) * len(self.targets) or (self.region,)
 
 
 @struct.dataclass
@@ -93,7 +100,7 @@ class TaskParams:
     """Per-task env data (a leading task axis when stacked)."""
 
     solid: jax.Array        # bool[H, W]
-    victim_at: jax.Array    # int32[H, W]: 0 on the task's victim, -1 elsewhere
+    victim_at: jax.Array    # int32[G, H, W]: 0 on the task's victim (goal-conditioned TRIAGE: goal g's slot), -1 elsewhere
     goal_region: jax.Array  # int32[G]: the region to reach for each goal index, -1 for a triage task
     starts: jax.Array       # int32[M, 4] (row, col, dir, goal index), padded by repetition
     n_starts: jax.Array     # int32
@@ -209,25 +216,43 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
                 if graph.adjacency[graph.cell_region[r, c], options.region[o]]:
                     tasks.append(_navigation_task(env, f"agent{i}:{options.names[o]}", int(options.region[o]), o, i,
                                                   navigate_start))
-        else:  # TRIAGE-v, or where victims are drawn a task per slot of TRIAGE-IN-R
+        else:  # TRIAGE-v; where victims are drawn TRIAGE-IN-R, told which of its room's slots (its goal)
             room = options.region[o]
             slots = [int(options.victim[o])] if options.slot_flag is None else \
                 np.flatnonzero(options.slot_flag == options.victim[o]).tolist()
-            for v in slots:
-                victim_cell = tuple(layout.victim_pos[v])
-                in_room = [tuple(x) for x in np.argwhere((graph.cell_region == room) & ~layout.blocked)
-                           if tuple(x) != victim_cell]  # blocked: where victims are drawn (``options.method_env``)
-                cells = in_room if triage_start == "room" else \
-                    [c for c in _entry_cells(graph.cell_region, room) if c != victim_cell]
-                starts = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in cells for d in range(4)], np.int32))
-                initiation = _in_modes(rubble, np.array([[r, c, d, 0] for r, c in in_room for d in range(4)],
-                                                        np.int32))
-                name = options.names[o] if options.slot_flag is None else \
-                    f"TRIAGE-SLOT-{v}-IN-{room_label(graph.names[room])}"
-                tasks.append(Task(name, o, -1, starts, starts, initiation, -1, v))
+            cells = {tuple(layout.victim_pos[v]) for v in slots}
+            in_room = [tuple(x) for x in np.argwhere((graph.cell_region == room) & ~layout.blocked)
+                       if tuple(x) not in cells]  # blocked: where victims are drawn (``options.method_env``)
+            from_ = in_room if triage_start == "room" else \
+                [c for c in _entry_cells(graph.cell_region, room) if c not in cells]
+            goals = range(len(slots) if options.slot_flag is not None else 1)
+            states = lambda where: _in_modes(rubble, np.array([[r, c, d, g] for g in goals for r, c in where
+                                                               for d in range(4)], np.int32))
+            starts, initiation = states(from_), states(in_room)
+            if options.slot_flag is None:
+                tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, slots[0]))
+            else:
+                tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, -1, targets=tuple(slots)))
     if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
         tasks = [_reachable(env, t) for t in tasks]
+        tasks = [_in_mode_zero(env, t) if t.targets else t for t in tasks]
     return tasks
+
+
+def _in_mode_zero(env: USAREnv, t: Task) -> Task:
+    """``t`` trained and judged in mode 0 only (``every_mode=False``) where no mode's rubble changes the
+    fewest steps from any of its states: a room's TRIAGE behind its doorway (its sub-policy is then run
+    in mode 0 whatever the rubble; 1/modes of the states to learn)."""
+    dist, modes = _task_arrays(env, t)[3], Rubble.of(env.layout).n_modes
+    s = t.initiation
+    base = (s[:, 3] // modes) * modes
+    if not np.array_equal(dist[s[:, 3], s[:, 0], s[:, 1], s[:, 2]], dist[base, s[:, 0], s[:, 1], s[:, 2]]):
+        return t
+    zero = lambda a: a[a[:, 3] % modes == 0]
+    if len(zero(s)) * modes != len(s):  # some state exists in some modes only
+        return t
+    return dataclasses.replace(t, starts=zero(t.starts), test_starts=zero(t.test_starts), initiation=zero(s),
+                               every_mode=False)
 
 
 def _reachable(env: USAREnv, t: Task) -> Task:
@@ -242,24 +267,25 @@ def _task_arrays(env: USAREnv, t: Task):
     """(solid, victim_at, goal regions, dist) of task ``t``: dist int32[goals x modes, H, W, 4], the fewest
     steps from each state to the task's end (-1: never), by the planner in each mode."""
     layout, region, rubble = env.layout, env.graph.cell_region, Rubble.of(env.layout)
-    victim_at = np.full(layout.shape, -1, np.int32)
-    solid = layout.blocked.copy()
-    if t.victim >= 0:
-        cell = tuple(layout.victim_pos[t.victim])
-        victim_at[cell], solid[cell] = 0, True
     goals = np.asarray(t.goal_regions, np.int32)
+    victim_at = np.full((len(goals),) + layout.shape, -1, np.int32)
+    solid = layout.blocked.copy()
+    for g, v in enumerate(t.targets or ([t.victim] if t.victim >= 0 else [])):
+        cell = tuple(layout.victim_pos[v])
+        victim_at[(g,) + cell], solid[cell] = 0, True
     wait = np.zeros((len(goals) * rubble.n_modes,) + layout.shape, bool)
     if t.clears:
         return solid, victim_at, goals, planning.steps_to_clear(solid, rubble.cells, t.clears), wait
     dist = []
-    for g in goals:
+    for gi, g in enumerate(goals):
         for m in range(rubble.n_modes):
             now = solid | np.asarray(rubble.uncleared(m))
-            d = planning.steps_to_goal(now, victim_at, goal_region_mask=(region == g) if g >= 0 else None, triage=g < 0)
+            d = planning.steps_to_goal(now, victim_at[gi], goal_region_mask=(region == g) if g >= 0 else None,
+                                       triage=g < 0)
             if g >= 0 and rubble.n_cells:  # cut off by rubble: to where it waits, then one no-op (TRIAGE) there
                 w = waiting_cells(solid, np.asarray(rubble.uncleared(m)), region == g)
                 wait[len(dist)] = w
-                to_wait = planning.steps_to_goal(now, victim_at, goal_region_mask=w)
+                to_wait = planning.steps_to_goal(now, victim_at[gi], goal_region_mask=w)
                 d = np.where(d >= 0, d, np.where(to_wait >= 0, to_wait + 1, -1))
             dist.append(d)
     return solid, victim_at, goals, np.stack(dist), wait
@@ -283,7 +309,7 @@ def policy_table(env: USAREnv, options: Options, tasks: list[Task], navigation: 
                 if hop[q, options.region[o]] >= 0:
                     table[:, q, o] = task_to[int(hop[q, options.region[o]])]
     for k, t in enumerate(tasks):
-        if t.option >= 0 and (t.victim >= 0 or t.clears or navigation == "adjacent"):
+        if t.option >= 0 and (t.victim >= 0 or t.targets or t.clears or navigation == "adjacent"):
             table[[t.agent] if t.agent >= 0 else slice(None), :, t.option] = k
     role = options.role  # TRIAGE for medics, CLEAR for engineers
     wrong = (role >= 0)[None] & (role[None] != env.roles[:, None])  # [n_agents, O]
@@ -317,6 +343,7 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
             raise ConfigError(f"task {t.name}: no state of its initiation set can reach its sub-goal")
         solid, victim_at, goals, dist, wait = _task_arrays(env, t)
         goals, dist, wait = pad(goals, n_goals), pad(dist, n_goals * n_modes), pad(wait, n_goals * n_modes)
+        victim_at = pad(victim_at, n_goals)
         for k in ("test_starts", "initiation"):
             states = getattr(t, k)
             if np.any(dist[states[:, 3], states[:, 0], states[:, 1], states[:, 2]] < 0):
@@ -406,7 +433,8 @@ class SubtaskEnv:
         if k:
             mode = goal % self.n_modes
             solid = solid | self.rubble.uncleared(mode)
-        new, d, triaged, _ = apply_actions(solid, p.victim_at, pos[None], direction[None], jnp.zeros((1,), bool),
+        new, d, triaged, _ = apply_actions(solid, p.victim_at[goal // self.n_modes], pos[None], direction[None],
+                                           jnp.zeros((1,), bool),
                                            action[None])
         target = p.goal_region[goal // self.n_modes]
         success = triaged[0] | (target >= 0) & (jnp.asarray(self.region)[new[0, 0], new[0, 1]] == target)

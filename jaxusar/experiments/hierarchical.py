@@ -61,7 +61,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                           "coordinator (--set hierarchical.coordinator.kind=factored), linear in the medics")
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
     params = sp.task_params(env, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
-    n_goals = max(len(t.goals) for t in tasks)  # goal-conditioned navigation: its goals; else 0
+    n_goals = max(len(t.goals or t.targets) for t in tasks)  # goal-conditioned tasks: their goals; else 0
     senv = sp.SubtaskEnv(env, env.horizon, h.subpolicy_features, n_goals, h.focus_starts)
     sub_learner = sp.make_learner(senv, cfg.dqn)
     # fewest steps of any training episode: from any start (0 would mean a start inside the goal)
@@ -99,15 +99,19 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
 
 def slot_tables(options, tasks, params) -> dict:
     """Where victims are drawn (``options.slot_flag``), what ``MacroEnv`` needs to run TRIAGE-IN-R one
-    slot at a time: ``slot_task`` int32[S] (each slot's task) and ``slot_dist`` (its distance table);
-    else nothing."""
+    slot at a time: ``slot_task`` and ``slot_goal`` int32[S] (the room's task, and the slot's goal index in
+    it), ``slot_dist`` (the slot's distance table, per rubble mode) and ``slot_every_mode`` (its task runs
+    in the rubble's mode, else in mode 0: ``Task.every_mode``); else nothing."""
     if options.slot_flag is None:
         return {}
-    task = np.full(len(options.slot_flag), -1, np.int32)
+    n = len(options.slot_flag)
+    task, goal, every_mode = np.full(n, -1, np.int32), np.zeros(n, np.int32), np.ones(n, bool)
     for k, t in enumerate(tasks):
-        if t.victim >= 0:
-            task[t.victim] = k
-    return {"slot_task": task, "slot_dist": np.asarray(params.dist)[task]}
+        for g, v in enumerate(t.targets):
+            task[v], goal[v], every_mode[v] = k, g, t.every_mode
+    modes = params.dist.shape[1] // params.goal_region.shape[1]
+    dist = np.stack([np.asarray(params.dist[k][g * modes:(g + 1) * modes]) for k, g in zip(task, goal)])
+    return {"slot_task": task, "slot_goal": goal, "slot_dist": dist, "slot_every_mode": every_mode}
 
 
 def unsupported_features(env) -> list[str]:
@@ -116,7 +120,8 @@ def unsupported_features(env) -> list[str]:
     that work slot by slot, ``options.method_env``; the coordinator's room flags and known victims,
     ``coordinator.MacroEnv``). Under "view" the same options search and the abstract state holds only what
     the team has seen (tested), but the method is measured there only over exact sub-policies so far:
-    training its sub-policies (a task per victim slot, 42 on minimap) does not yet fit a run's budget."""
+    training its sub-policies (18 tasks on minimap, some over every rubble mode) does not yet fit a run's
+    budget."""
     view = env.observation == "view"
     return ["partial observability (observation=view; the method runs on this map with "
             "--set env.observation=full)"] if view else []
@@ -149,11 +154,10 @@ def auto_option_timeout(env, options, tasks, params) -> int:
     may start in (a chained NAVIGATE across the map included), at least 50 steps (two_rooms: 50)."""
     longest, region, modes = 0, env.graph.cell_region, len(params.dist[0]) // len(params.goal_region[0])
     # where victims are drawn, TRIAGE-IN-R visits its room's slots one after another
-    per_option = 1 if options.slot_flag is None else int(np.bincount(options.slot_flag).max())
     for k, t in enumerate(tasks):
-        if t.victim >= 0 or t.clears:
+        if t.victim >= 0 or t.targets or t.clears:
             steps = int(params.dist[k][tuple(t.initiation[:, [3, 0, 1, 2]].T)].max())
-            longest = max(longest, steps * (per_option if t.victim >= 0 else 1))
+            longest = max(longest, steps * max(len(t.targets), 1))
         elif t.option >= 0 or t.goals:  # a NAVIGATE option's task: its table is the room's distance from anywhere
             for g, room in enumerate(t.goal_regions):
                 starts = options.starts_from[np.maximum(region, 0), room] & (region >= 0)
