@@ -57,12 +57,14 @@ def test_curves_keep_the_best_so_far_and_find_the_first_step_at_the_target():
 
 # -- bad input ---------------------------------------------------------------------------------------
 def test_an_algorithm_on_a_task_it_cannot_run_is_a_one_line_error_before_anything_compiles(tmp_path, capsys):
-    argv = ["benchmark", "--tasks", "minimap-v1", "--algorithms", "hierarchical", "--out", str(tmp_path / "b")]
+    argv = ["benchmark", "--tasks", "minimap-v1", "--algorithms", "hierarchical", "--out", str(tmp_path / "b"),
+            "--set", "hierarchical.hierarchical.coordinator.kind=flat",
+            "--set", "hierarchical.hierarchical.coordinator.max_joint_options=1000"]
     with pytest.raises(SystemExit, match="2"):
         main(argv)
     err = capsys.readouterr().err.strip()
-    assert err.startswith("jaxusar benchmark: error: hierarchical cannot run minimap-v1: the paper's method does "
-                          "not master partial observability") and "\n" not in err
+    assert err.startswith("jaxusar benchmark: error: hierarchical cannot run minimap-v1: the flat coordinator on "
+                          "'minimap' would choose among 3,375 joint options") and "\n" not in err
     assert not (tmp_path / "b").exists()
 
 

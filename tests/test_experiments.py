@@ -356,11 +356,15 @@ def test_map_derived_defaults_follow_the_team_and_the_map_size(tmp_path):
     # the budget and exploration
     c, _ = coordinator("two_rooms_rubble")
     assert (c.kind, c.termination, c.episodes, c.eps_decay_steps, c.dodge) == ("factored", "own", 500, 1000, True)
-    # drawn victims: every learner tests on 8 draws; the coordinator learns longer over the draws
+    # drawn victims: every learner tests on 8 draws; the coordinator learns longer over the draws, and
+    # further ahead (its episodes run to the horizon)
     mini = config.load(None, ["env.map=minimap"], algos.defaults("hierarchical"))
     c = mini.hierarchical.coordinator
-    assert (mini.train.test_draws, c.episodes, c.eps_decay_steps, c.test_every) == (8, 1500, 3000, 5)
-    assert config.load(None, ["env.map=minimap"], algos.defaults("iql")).train.test_draws == 8
+    assert (mini.train.test_draws, c.episodes, c.eps_decay_steps, c.test_every, c.gamma) == (8, 1500, 3000, 5, 0.99)
+    assert config.load(None, ["env.map=two_rooms_rubble"], algos.defaults("hierarchical")).hierarchical.coordinator.gamma \
+        == config.CoordinatorConfig().gamma
+    iql = config.load(None, ["env.map=minimap"], algos.defaults("iql"))
+    assert iql.train.test_draws == 8 and iql.train.episodes == 2000  # minimap's settings file: the baselines' budget
     assert config.load(None, ["env.map=two_rooms_rubble"], algos.defaults("iql")).train.test_draws == 1
 
 

@@ -569,7 +569,7 @@ def test_factored_coordinator_sums_per_medic_heads():
 def test_flat_coordinator_refuses_too_many_joint_options():
     from jaxusar.experiments.hierarchical import build
 
-    with pytest.raises(ConfigError, match=r"50,625 joint options \(15 options \^ 4 medics\).*factored"):
+    with pytest.raises(ConfigError, match=r"50,625 joint options \(15 options \^ 4 agents\).*factored"):
         build(config.load(None, ["env.map=office", "hierarchical.coordinator.kind=flat"], defaults=coord_defaults()))
 
 
@@ -818,7 +818,7 @@ def test_dodge_lets_agents_meeting_head_on_in_the_open_step_aside(dodge):
     ("two_rooms", "[navigate,clear]", "without triage options no victim can be saved"),
     ("two_rooms", "[navigate,triage,clear]", "clear options need rubble and an engineer, and map 'two_rooms' has no rubble"),
     ("two_rooms", "[navigate,triage,search]", "search options need observation=view"),
-    ("minimap", "[navigate,triage,search]", "does not build search options: its TRIAGE options per victim slot"),
+    ("minimap", "[navigate,triage,search]", "builds no search options: under observation=view TRIAGE-IN-R searches"),
 ])
 def test_an_option_kind_the_map_cannot_offer_is_a_one_line_error_before_anything_compiles(map_, kinds, message):
     cfg = config.load(None, [f"env.map={map_}", f"hierarchical.option_kinds={kinds}"],
@@ -901,11 +901,10 @@ def test_drawn_victims_get_a_triage_option_per_room_that_works_slot_by_slot(tmp_
     assert bool(done) and bool(info["terminated"])
 
 
-def test_under_view_the_coordinator_knows_only_the_victims_the_team_has_seen(tmp_path, monkeypatch):
+def test_under_view_the_coordinator_knows_only_the_victims_the_team_has_seen(tmp_path):
     """The abstract state never holds an unseen victim's position: draws that differ only in unseen slots
     look the same to the coordinator; a room is done only once seen holding no victim to save, and its
     known victims are the ones seen."""
-    monkeypatch.setattr(hierarchical, "unsupported_features", lambda env: [])
     macro, _ = _drawn_macro(tmp_path, "view")
     env = macro.env
     assert macro.view and env.view_radius is None  # the team sees a whole region at once

@@ -194,9 +194,8 @@ def check_option_kinds(kinds: tuple[str, ...], env) -> None:
         raise ConfigError(f"{where}: search options need observation=view (a room is searched once every cell of it "
                           f"was seen), and map {env.layout.name!r} is observed in full")
     if "search" in kinds:
-        raise ConfigError(f"{where}: the hierarchical method does not build search options: "
-                          "its TRIAGE options per victim slot would search, and it does not run under observation=view "
-                          "yet; iql and doc train there")
+        raise ConfigError(f"{where}: the hierarchical method builds no search options: under observation=view "
+                          "TRIAGE-IN-R searches (a medic sent to a room's unseen slot sees it on the way)")
 
 
 def room_label(name: str) -> str:

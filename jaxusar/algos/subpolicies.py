@@ -234,16 +234,16 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             else:
                 tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, -1, targets=tuple(slots)))
     if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
-        tasks = [_reachable(env, t) for t in tasks]
-        tasks = [_in_mode_zero(env, t) if t.targets else t for t in tasks]
+        dists = [_task_arrays(env, t)[3] for t in tasks]
+        tasks = [_reachable(t, d) for t, d in zip(tasks, dists)]
+        tasks = [_in_mode_zero(t, d, rubble.n_modes) if t.targets else t for t, d in zip(tasks, dists)]
     return tasks
 
 
-def _in_mode_zero(env: USAREnv, t: Task) -> Task:
+def _in_mode_zero(t: Task, dist: np.ndarray, modes: int) -> Task:
     """``t`` trained and judged in mode 0 only (``every_mode=False``) where no mode's rubble changes the
-    fewest steps from any of its states: a room's TRIAGE behind its doorway (its sub-policy is then run
-    in mode 0 whatever the rubble; 1/modes of the states to learn)."""
-    dist, modes = _task_arrays(env, t)[3], Rubble.of(env.layout).n_modes
+    fewest steps (``dist``, ``_task_arrays``) from any of its states: a room's TRIAGE behind its doorway
+    (its sub-policy is then run in mode 0 whatever the rubble; 1/modes of the states to learn)."""
     s = t.initiation
     base = (s[:, 3] // modes) * modes
     if not np.array_equal(dist[s[:, 3], s[:, 0], s[:, 1], s[:, 2]], dist[base, s[:, 0], s[:, 1], s[:, 2]]):
@@ -255,9 +255,9 @@ def _in_mode_zero(env: USAREnv, t: Task) -> Task:
                                every_mode=False)
 
 
-def _reachable(env: USAREnv, t: Task) -> Task:
-    """``t`` without the states from which its goal cannot be reached (in their mode)."""
-    dist = _task_arrays(env, t)[3]
+def _reachable(t: Task, dist: np.ndarray) -> Task:
+    """``t`` without the states from which its goal cannot be reached (in their mode; ``dist``:
+    ``_task_arrays``)."""
     keep = lambda a: a[dist[a[:, 3], a[:, 0], a[:, 1], a[:, 2]] >= 0]
     return dataclasses.replace(t, starts=keep(t.starts), test_starts=keep(t.test_starts),
                                initiation=keep(t.initiation))

@@ -209,7 +209,7 @@ def plan(tasks: list[Task], algorithms: list[str], explicit: bool, out: Path, qu
     for task in tasks:
         mine = cfgs[task.id]
         env = envs.make(mine[ALGORITHMS[0]].env.map, **mine[ALGORITHMS[0]].env.overrides())
-        why = {a: train.unsupported(a, env) for a in algorithms}
+        why = {a: train.unsupported(a, mine[a]) for a in algorithms}
         for a, reason in why.items():
             if reason and explicit:
                 raise config.ConfigError(f"{a} cannot run {task.id}: {reason}")

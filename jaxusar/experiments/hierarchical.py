@@ -48,17 +48,8 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     """Everything the two stages need. ``subpolicy_act(params, obs) -> action[1]``: how the coordinator's
     macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
     gives exact ones)."""
-    world = envs.make(cfg.env.map, **cfg.env.overrides())
+    world, env, options = setup(cfg)
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
-    check_option_kinds(h.option_kinds, world)
-    check_supported(world)
-    env = method_env(world)  # the same env, rubble in a doorway counted as the hall's
-    options = options_from_graph(env.graph, h.navigation, env, h.option_kinds)
-    if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
-        raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
-                          f"{options.n ** env.n_agents:,} joint options ({options.n} options ^ {env.n_agents} medics), more than "
-                          f"hierarchical.coordinator.max_joint_options={c.max_joint_options:,}; use the factored "
-                          "coordinator (--set hierarchical.coordinator.kind=factored), linear in the medics")
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
     params = sp.task_params(env, tasks, cfg.dqn.gamma, cfg.hierarchical.task_gamma)
     n_goals = max(len(t.goals or t.targets) for t in tasks)  # goal-conditioned tasks: their goals; else 0
@@ -114,25 +105,24 @@ def slot_tables(options, tasks, params) -> dict:
     return {"slot_task": task, "slot_goal": goal, "slot_dist": dist, "slot_every_mode": every_mode}
 
 
-def unsupported_features(env) -> list[str]:
-    """The features of ``env`` (contract part 2) the method does not run on yet. Rubble and engineers it
-    does (CLEAR options); victims drawn at reset, multi-step triage and expiry too (TRIAGE-IN-R options
-    that work slot by slot, ``options.method_env``; the coordinator's room flags and known victims,
-    ``coordinator.MacroEnv``). Under "view" the same options search and the abstract state holds only what
-    the team has seen (tested), but the method is measured there only over exact sub-policies so far:
-    training its sub-policies (18 tasks on minimap, some over every rubble mode) does not yet fit a run's
-    budget."""
-    view = env.observation == "view"
-    return ["partial observability (observation=view; the method runs on this map with "
-            "--set env.observation=full)"] if view else []
-
-
-def check_supported(env) -> None:
-    """A one-line ConfigError, before anything compiles, where ``env`` has a feature the method lacks."""
-    missing = unsupported_features(env)
-    if missing:
-        raise ConfigError(f"the hierarchical method cannot run on map {env.layout.name!r}: it does not master "
-                          f"{', '.join(missing)} yet (iql and doc train there)")
+def setup(cfg: ExperimentConfig):
+    """(the map's env, the method's env, its options) for ``cfg``; a one-line ConfigError, before anything
+    compiles, where the method cannot run as configured: option kinds the map cannot offer, or a flat
+    coordinator past ``max_joint_options``. The method's env is the same world with rubble in a doorway
+    counted as the hall's (``options.method_env``). Every rule of the contract is mastered: rubble and
+    engineers (CLEAR), victims drawn at reset, multi-step triage, expiry and "view" (TRIAGE-IN-R works slot
+    by slot and searches; the coordinator's abstract state holds only what the team has seen)."""
+    world = envs.make(cfg.env.map, **cfg.env.overrides())
+    h, c = cfg.hierarchical, cfg.hierarchical.coordinator
+    check_option_kinds(h.option_kinds, world)
+    env = method_env(world)
+    options = options_from_graph(env.graph, h.navigation, env, h.option_kinds)
+    if c.kind == "flat" and options.n ** env.n_agents > c.max_joint_options:
+        raise ConfigError(f"the flat coordinator on {env.layout.name!r} would choose among "
+                          f"{options.n ** env.n_agents:,} joint options ({options.n} options ^ {env.n_agents} agents), "
+                          f"more than hierarchical.coordinator.max_joint_options={c.max_joint_options:,}; use the "
+                          "factored coordinator (--set hierarchical.coordinator.kind=factored), linear in the agents")
+    return world, env, options
 
 
 def check_rooms_reachable(env, options, table: np.ndarray, navigation: str) -> None:

@@ -23,11 +23,9 @@ fixed), and writes::
     hierarchical/ doc/ iql/   each algorithm's own results folder (metrics.json, curves.csv, params/, ...)
     checkpoints/          while running (removed at the end): every trainer's state, for resuming
 
-An algorithm that cannot run on the map (``train.unsupported``: the paper's method on minimap, so far) is
-left out with why, printed and in results.json (``cannot_run``). Each algorithm's settings are its defaults
-(= ``configs/<algo>.yaml``); ``--quick`` lowers the budgets (QUICK below) for a first look in minutes
-(docs/performance.md: its time). ``sets`` override settings of every algorithm
-(``env.horizon=200``) or of one (``iql.train.episodes=100``).
+Each algorithm's settings are its defaults (= ``configs/<algo>.yaml``) and the map's; ``--quick`` lowers the
+budgets (QUICK below) for a first look in minutes (docs/performance.md: its time). ``sets`` override
+settings of every algorithm (``env.horizon=200``) or of one (``iql.train.episodes=100``).
 """
 
 from __future__ import annotations
@@ -115,11 +113,9 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
     if len({c.seed for c in cfgs.values()}) != 1:
         raise config.ConfigError("every algorithm must use the same seed (the trials are the same seeds)")
     env = envs.make(cfgs["iql"].env.map, **cfgs["iql"].env.overrides())
-    cannot_run = {a: why for a in ALGORITHMS if (why := train.unsupported(a, env))}
-    algorithms = [a for a in ALGORITHMS if a not in cannot_run]
     with train.removed_if_refused(out):
         out = train.prepare_out(out, force, marker="results.json")
-        folders = {a: out / a for a in algorithms}
+        folders = {a: out / a for a in ALGORITHMS}
         for f in folders.values():
             f.mkdir(exist_ok=True)
         runner = Runner(out / "checkpoints", fingerprint(cfgs, trials), checkpoint_every, devices,
@@ -127,16 +123,14 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
         try:
             setup = {}
             experiments = {}
-            for a in algorithms:  # build (and plan) every algorithm before training any
+            for a in ALGORITHMS:  # build (and plan) every algorithm before training any
                 t = time.perf_counter()
                 experiments[a] = train.experiment(cfgs[a], keys)
                 setup[a] = time.perf_counter() - t
-            chains = [c for a in algorithms for c in experiments[a].chains]
+            chains = [c for a in ALGORITHMS for c in experiments[a].chains]
             chains.sort(key=lambda c: -sum(expected_cost(s) for s in c))  # longest first
             n_workers = train.worker_count(len(chains), workers)
             if not quiet:
-                for a, why in cannot_run.items():
-                    print(f"[reproduce] not running {a} on {env.layout.name}: {why}", flush=True)
                 print(f"[reproduce] {trials} trials; {len(chains)} trainers, {n_workers} at a time; "
                       f"{len(trial_devices(devices))} device(s) per trainer; writing {out}", flush=True)
             outcomes = runner.run(chains, workers=n_workers)
@@ -146,7 +140,7 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
                 return {}
 
             per_algorithm, seconds, judged = {}, {}, {}
-            for a in algorithms:
+            for a in ALGORITHMS:
                 t = time.perf_counter()
                 metrics = experiments[a].finish(folders[a], outcomes)
                 if env.n_drawn:  # judged on the scripted team's draws: one set for every algorithm and trial
@@ -162,12 +156,11 @@ def run(trials: int = 8, out: str | Path | None = None, quick: bool = False, set
         except KeyboardInterrupt:
             raise runner.interrupted() from None
     for name, source in FIGURES.items():
-        if (out / source).exists():  # an algorithm that could not run on this map has none
-            shutil.copyfile(out / source, out / name)
+        shutil.copyfile(out / source, out / name)
     for page in sorted((out / "hierarchical").glob("fig4_subpolicies_*.png")):  # past 8 sub-policies
         shutil.copyfile(page, out / page.name)
 
-    results = summary(per_algorithm, cfgs, trials, quick, judged, cannot_run)
+    results = summary(per_algorithm, cfgs, trials, quick, judged)
     results["command"] = command or shlex.join(
         ["jaxusar", "reproduce", "--trials", str(trials), "--out", str(out)] + (["--quick"] if quick else [])
         + (["--map", map] if map else [])
@@ -214,11 +207,10 @@ def row_key(algo: str, chain: list) -> str:
     return f"doc_{chain[-1].name.split('/')[-1]}" if algo == "doc" else algo
 
 
-def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool, judged: dict | None = None,
-            cannot_run: dict | None = None) -> dict:
+def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool, judged: dict | None = None) -> dict:
     """results.json: one row per algorithm (per K for option-critic), statistics over trials. ``judged``:
     on a map whose victims are drawn, each row's ``scripted.judge`` scores (normalized score, draws with
-    every victim saved, critical victims saved); ``cannot_run``: the algorithms left out, and why."""
+    every victim saved, critical victims saved)."""
     rows = {}
     if "hierarchical" in per_algorithm:
         h, ch = per_algorithm["hierarchical"], cfgs["hierarchical"]
@@ -253,7 +245,7 @@ def summary(per_algorithm: dict, cfgs: dict, trials: int, quick: bool, judged: d
     return {
         "trials": trials, "quick": quick, "map": cfgs["iql"].env.map, "optimal_team_steps": i["optimal_team_steps"],
         "reference": i["reference"], "team_lower_bound": i["team_lower_bound"], "algorithms": rows,
-        "cannot_run": cannot_run or {}, "paper_table2_best_of_8": PAPER_TABLE2,
+        "paper_table2_best_of_8": PAPER_TABLE2,
         "config_hashes": {a: c.hash() for a, c in cfgs.items()},
         "environment": train.environment_info(),
     }
@@ -271,10 +263,6 @@ def _episodes(x) -> str:
 def _label(key: str) -> str:
     algo, _, k = key.partition("_K")
     return LABELS[algo] + (f", {k} options" if k else "")
-
-
-def _not_run(results: dict) -> list[str]:
-    return [f"Not run on this map: {a} ({why})." for a, why in results.get("cannot_run", {}).items()]
 
 
 def drawn_table(results: dict) -> str:
@@ -306,7 +294,7 @@ def drawn_table(results: dict) -> str:
                      f"{min(j['normalized_score']):.3f} | {np.mean(j['fraction_all_saved']):.1%} | "
                      f"{np.mean(j['critical_saved']):.2f} | {budget} |")
     lines += ["", "Draws with every victim saved and critical saved: means over the trials (per trial in "
-              "results.json, `judged`).", *_not_run(results), "",
+              "results.json, `judged`).", "",
               "Per-trial numbers, seconds and versions: results.json."]
     return "\n".join(lines) + "\n"
 
@@ -358,7 +346,6 @@ def table2(results: dict) -> str:
               "of its sub-policies' "
               "episodes to optimal (from every initiation state, below) plus the coordinator's (the paper's "
               "accounting); the budget is the sum of the sub-policy and coordinator budgets."]
-    lines += _not_run(results)
     if h and "subpolicy_episodes_to_optimal" in h:
         lines += ["", "## The paper's method, stage by stage", ""] + stage_table(h, steps, exact)
     lines += ["", "Per-trial numbers, seconds and versions: results.json."]

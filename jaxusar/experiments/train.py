@@ -193,14 +193,17 @@ def reference_metrics(reference: dict, results: dict) -> dict:
                                for s, ok in zip(results["best_length"], solved)]}
 
 
-def unsupported(algo: str, env) -> str | None:
-    """Why ``algo`` cannot run on ``env`` (one line), or None."""
+def unsupported(algo: str, cfg: ExperimentConfig) -> str | None:
+    """Why ``algo`` cannot run as ``cfg`` says (one line, before anything compiles), or None: for the
+    paper's method ``hierarchical.setup``'s refusals (an option kind the map cannot offer, a flat
+    coordinator past its joint options)."""
     if algo == "hierarchical":
         from jaxusar.experiments import hierarchical
 
-        missing = hierarchical.unsupported_features(env)
-        if missing:
-            return f"the paper's method does not master {', '.join(missing)} yet"
+        try:
+            hierarchical.setup(cfg)
+        except ConfigError as err:
+            return str(err)
     return None
 
 
