@@ -6,9 +6,9 @@ Shape of a chunk (one jitted call, all trials at once)::
         scan over train_every steps:
             vmap over trials: act, env.step, observe, episode bookkeeping, auto-reset
         if any trial finished a test-due episode: snapshot its policy params   (lax.cond)
-        if some trial's snapshot slots are full: evaluate them                  (lax.cond)
+        if some trial's snapshot slots are full, or at the chunk's last
+          iteration any are used: evaluate them                                 (lax.cond)
         if step >= learning_starts: vmap over trials: learner.update           (lax.cond)
-    evaluate the snapshots left                                                (lax.cond per slot)
 
     evaluate = for each snapshot slot some trial used: vmap over trials: greedy test episode
         (a while loop: stops when every lane is done); record it, keep the best params
@@ -437,15 +437,18 @@ class Trainer:
             (trials, step), _ = jax.lax.scan(inner, (trials, step), act)
             trials = jax.lax.cond(jnp.any(trials.pending_test != NO_TEST),
                                   jax.vmap(self._snapshot), lambda t: t, trials)
-            # one snapshot per trial per iteration at most (checked in __init__), so none is ever lost
-            trials = jax.lax.cond(jnp.max(trials.snaps.count) >= self.n_slots, self._evaluate, lambda t: t, trials)
+            # one snapshot per trial per iteration at most (checked in __init__), so none is ever lost; the
+            # chunk's last iteration evaluates what is left (one copy of the tests in the program, not two)
+            used = jnp.max(trials.snaps.count)
+            due = (used >= self.n_slots) | ((i == self.iters - 1) & (used > 0))
+            trials = jax.lax.cond(due, self._evaluate, lambda t: t, trials)
             learner = jax.lax.cond(step >= self.learning_starts, self._learn, lambda l, *_: l, trials.learner,
                                    upd_keys, i)
             return (trials.replace(learner=learner), step), None
 
         (trials, step), _ = jax.lax.scan(iteration, (state.trials, state.step),
                                          (act_noise, jnp.arange(self.iters, dtype=jnp.uint32)))
-        return TrainState(trials=self._evaluate(trials), step=step, chunk=state.chunk + 1)
+        return TrainState(trials=trials, step=step, chunk=state.chunk + 1)
 
     def _run_lanes(self, state: TrainState, lanes: jax.Array) -> TrainState:
         """One chunk of the trials ``lanes`` only (int32[B]; an index past the last trial pads the batch:
