@@ -172,11 +172,11 @@ class MacroEnv:
         self.slot_flag = options.slot_flag  # drawn victims: TRIAGE-IN-R's flag (its room done) for each slot
         self.drawn = self.slot_flag is not None
         if self.drawn:
-            assert slot_task is not None, "drawn victims: each slot's task, goal and distances (slot_tables)"
+            assert all(x is not None for x in (slot_task, slot_goal, slot_dist, slot_every_mode)), \
+                "drawn victims: each slot's task, goal, distances and modes (hierarchical.slot_tables)"
             self.slot_task, self.slot_goal, self.slot_dist = (np.asarray(x, np.int32) for x in (slot_task, slot_goal,
                                                                                                  slot_dist))
-            self.slot_every_mode = np.ones(self.n_slots, bool) if slot_every_mode is None else \
-                np.asarray(slot_every_mode, bool)
+            self.slot_every_mode = np.asarray(slot_every_mode, bool)
         self.n_flags = int(self.slot_flag.max()) + 1 if self.drawn else self.n_slots
         self.obs_blocks = (self.n_regions,) * env.n_agents + (1,) * self.n_flags + (1,) * self.n_groups
         if self.drawn:  # per room: the known victims to save, regular and critical, capped

@@ -218,21 +218,19 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
                                                   navigate_start))
         else:  # TRIAGE-v; where victims are drawn TRIAGE-IN-R, told which of its room's slots (its goal)
             room = options.region[o]
-            slots = [int(options.victim[o])] if options.slot_flag is None else \
-                np.flatnonzero(options.slot_flag == options.victim[o]).tolist()
+            drawn = options.slot_flag is not None
+            slots = np.flatnonzero(options.slot_flag == options.victim[o]).tolist() if drawn else [int(options.victim[o])]
             cells = {tuple(layout.victim_pos[v]) for v in slots}
             in_room = [tuple(x) for x in np.argwhere((graph.cell_region == room) & ~layout.blocked)
                        if tuple(x) not in cells]  # blocked: where victims are drawn (``options.method_env``)
             from_ = in_room if triage_start == "room" else \
                 [c for c in _entry_cells(graph.cell_region, room) if c not in cells]
-            goals = range(len(slots) if options.slot_flag is not None else 1)
+            goals = range(len(slots))
             states = lambda where: _in_modes(rubble, np.array([[r, c, d, g] for g in goals for r, c in where
                                                                for d in range(4)], np.int32))
             starts, initiation = states(from_), states(in_room)
-            if options.slot_flag is None:
-                tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, slots[0]))
-            else:
-                tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, -1, targets=tuple(slots)))
+            tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, -1 if drawn else slots[0],
+                              targets=tuple(slots) if drawn else ()))
     if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
         dists = [_task_arrays(env, t)[3] for t in tasks]
         tasks = [_reachable(t, d) for t, d in zip(tasks, dists)]
