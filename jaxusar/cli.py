@@ -404,7 +404,8 @@ def add_benchmark(subparsers) -> None:
     p.add_argument("--trials", type=int, default=None,
                    help="independent seeds per task and algorithm (default 8; 4 with --quick)")
     p.add_argument("--quick", action="store_true",
-                   help="reduced budgets and 4 trials: the whole suite in minutes, for a first look")
+                   help="reduced budgets and 4 trials, no per-run figures: the whole suite in minutes, for a "
+                        "first look")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/benchmark)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",
                    help="override a setting of every algorithm or of one (iql.train.episodes=100); repeatable")

@@ -108,9 +108,25 @@ def test_a_tiny_benchmark_writes_its_leaderboard_figures_and_counts_env_steps(tm
                     for k in range(2)]
         assert run["env_steps"] == by_trial, key
         assert np.all(np.diff(run["curve_env_steps"], axis=1) >= 0)
+    assert (out / "runs" / "two_rooms-v1" / "iql" / "curves.png").stat().st_size > 0  # each run's own figures
     with pytest.raises(SystemExit, match="2"):  # a finished benchmark is never overwritten
         main(argv)
     assert "results.json exists" in capsys.readouterr().err
+
+
+def test_quick_writes_the_suite_figures_and_each_runs_results_but_no_per_run_figures(tmp_path):
+    out = tmp_path / "quick"
+    sets = TINY + ["env.horizon=40", "hierarchical.dqn.train_every=1", "hierarchical.hierarchical.coordinator.episodes=2",
+                   "hierarchical.hierarchical.coordinator.test_every=1"]
+    argv = ["benchmark", "--quick", "--tasks", "two_rooms-v1", "--algorithms", "hierarchical", "iql", "scripted",
+            "--trials", "2", "--out", str(out), "--quiet"] + [x for s in sets for x in ("--set", s)]
+    assert main(argv) == 0
+    assert (out / "aggregates.png").stat().st_size > 0 and json.loads((out / "results.json").read_text())["quick"]
+    for algo in ("hierarchical", "iql", "scripted"):
+        run = out / "runs" / "two_rooms-v1" / algo
+        assert json.loads((run / "metrics.json").read_text())["trials"] == 2, algo
+        assert not list(run.rglob("*.png")), algo
+    assert (out / "runs" / "two_rooms-v1" / "hierarchical" / "params" / "trial_1.msgpack").exists()
 
 
 def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripted_team():
@@ -119,5 +135,10 @@ def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripte
     cfgs = benchmark.configs(suite.TASKS["two_rooms-v1"], "two_rooms", quick=True, sets=[])
     assert set(cfgs) == set(benchmark.ALGORITHMS)
     assert cfgs["iql"].train.episodes == 100 and cfgs["hierarchical"].hierarchical.coordinator.episodes == 30
+    assert cfgs["hierarchical"].train.episodes == 20
+    drawn = benchmark.configs(suite.TASKS["minimap-v1"], "minimap", quick=True, sets=[])  # victims drawn
+    assert drawn["hierarchical"].train.episodes == 10 and drawn["iql"].train.episodes == 100
+    assert benchmark.configs(suite.TASKS["minimap-v1"], "minimap", quick=False, sets=[])["hierarchical"].train.episodes \
+        == 600  # the method's default
     assert benchmark.trial_count(None, quick=True) == 4 and benchmark.trial_count(None, quick=False) == 8
     assert benchmark.trial_count(2, quick=True) == 2  # --trials, when given, wins

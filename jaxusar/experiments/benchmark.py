@@ -24,7 +24,8 @@ Writes ``out`` (default results/benchmark)::
     leaderboard.md      one row per algorithm: IQM, median, mean, optimality gap [95% CI], env steps to 90%
     tasks.md            per task: each algorithm's final scores (median, best, trials at >= 0.9)
     aggregates.png  profile.png  improvement.png  sample_efficiency.png
-    runs/<task>/<algo>/ each pair's own results folder (metrics.json, curves.csv, params/, figures)
+    runs/<task>/<algo>/ each pair's own results folder (metrics.json, curves.csv, params/, figures: none
+                        with --quick, whose time goes to training)
     maps/               the generated tasks' layouts
 """
 
@@ -47,6 +48,7 @@ from jaxusar.experiments import reproduce, stats, train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.suite import Task, materialize, resolve
 from jaxusar.experiments.plots import benchmark_figures, reward_range
+from jaxusar.envs.layout import load_layout
 from jaxusar.experiments.usage import Usage
 
 ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
@@ -58,6 +60,10 @@ SETTINGS = {"doc": ["doc.options=[2]"]}
 # paper's method's row (at 10 episodes it scores about 0, like the flat learners at 100).
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
          **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}  # scripted: nothing to train
+# ... and where victims are drawn, 10 episodes per sub-policy: there the paper's method scores about 0 at
+# either budget (minimap-v1: 0.004 at 20), and its 18 sub-policies' 10 episodes end within one chunk of
+# 4,000 steps, not two (minimap-v1's sub-policy stage, alone on the 2-core AMD EPYC: 144 s at 20 episodes).
+QUICK_DRAWN = {"hierarchical": ["train.episodes=10"]}
 TRIALS, QUICK_TRIALS = 8, 4
 TARGET = 0.9  # "env steps to 90% of the reference"
 CURVE_POINTS = 40
@@ -137,11 +143,13 @@ class Pair:
 
 def configs(task: Task, map_: str, quick: bool, sets: list[str]) -> dict[str, config.ExperimentConfig]:
     """Each algorithm's config on ``task``: its defaults and the map's settings, the benchmark's own
-    (SETTINGS), the task's observation and horizon, --quick budgets, then ``sets`` (all or ``algo.``-prefixed)."""
-    out = {}
+    (SETTINGS), the task's observation and horizon, --quick budgets (and QUICK_DRAWN where victims are
+    drawn), then ``sets`` (all or ``algo.``-prefixed)."""
+    out, drawn = {}, quick and len(load_layout(map_).random_cells) > 0
     for a in ALGORITHMS:
         own = [f"env.map={json.dumps(map_)}", f"env.observation={task.observation}", f"env.horizon={task.horizon}",
-               *SETTINGS.get(a, []), *(QUICK.get(a, []) if quick else [])]
+               *SETTINGS.get(a, []), *(QUICK.get(a, []) if quick else []),
+               *(QUICK_DRAWN.get(a, []) if drawn else [])]
         for s in sets:
             head = s.split(".", 1)[0]
             if head not in ALGORITHMS:
@@ -309,7 +317,7 @@ def run(tasks: list[str] | None = None, algorithms: list[str] | None = None, tri
             for pair in pairs:
                 task, env, _, ref = next(p for p in planned if p[0] is pair.task)
                 own = {name[len(pair.prefix) + 1:]: o for name, o in outcomes.items() if name.startswith(pair.prefix + "/")}
-                metrics = pair.experiment.finish(out / "runs" / task.id / pair.algo, own)
+                metrics = pair.experiment.finish(out / "runs" / task.id / pair.algo, own, figures=not quick)
                 (out / "runs" / task.id / pair.algo / "metrics.json").write_text(json.dumps(metrics, indent=2))
                 scored[task.id, pair.algo] = score_pair(pair, outcomes, ref, test_keys(task, env))
         except KeyboardInterrupt:

@@ -54,7 +54,7 @@ class Experiment:
                               optimal_steps=self.optimal)
             self.chains.append([Stage(f"doc/K{k}", trainer, keys)])
 
-    def finish(self, out: Path, outcomes: dict) -> dict:
+    def finish(self, out: Path, outcomes: dict, figures: bool = True) -> dict:
         cfg, ks = self.cfg, self.ks
         per_k = {}
         for k in ks:
@@ -68,9 +68,10 @@ class Experiment:
             print(f"[doc K={k}] {in_words(m['episodes_to_optimal'], cfg.train.episodes)}; task solved (any "
                   f"length) in {sum(e is not None for e in m['episodes_to_solved'])} of {m['trials']}", flush=True)
         series = [(f"{k} options", outcomes[f"doc/K{k}"].results) for k in ks]
-        training_figure(series, out / "fig5_doc.png", f"simplified distributed option-critic on {cfg.env.map}",
-                        horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env),
-                        reference=self.reference["reference"])
+        if figures:
+            training_figure(series, out / "fig5_doc.png", f"simplified distributed option-critic on {cfg.env.map}",
+                            horizon=self.env.horizon, optimal_steps=self.optimal, reward_range=reward_range(self.env),
+                            reference=self.reference["reference"])
         keep = ("episodes_to_optimal", "best", "median", "iqm", "iqm_ci95", "fraction_optimal", "episodes_to_solved",
                 "best_test_return", "best_test_steps", "optimality_gap", "env_steps", "seconds")
         return {

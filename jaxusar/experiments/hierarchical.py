@@ -328,7 +328,7 @@ class Experiment:
         n_tasks = len(self.b["tasks"])
         return jax.tree.map(lambda a: jnp.asarray(a).reshape(-1, n_tasks, *np.shape(a)[1:]), lanes)
 
-    def finish(self, out: Path, outcomes: dict) -> dict:
+    def finish(self, out: Path, outcomes: dict, figures: bool = True) -> dict:
         b, cfg, tasks = self.b, self.cfg, self.b["tasks"]
         n_tasks = len(tasks)
         sub_o, co_o = outcomes["hierarchical/subpolicies"], outcomes["hierarchical/coordinator"]
@@ -381,13 +381,14 @@ class Experiment:
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }
-        write_outputs(out, b, sub, co, best_sub, metrics)
+        write_outputs(out, b, sub, co, best_sub, metrics, figures)
         for line in summary_lines(metrics, cfg.train.episodes, cfg.hierarchical.coordinator.episodes):
             print(f"[hierarchical] {line}", flush=True)
         return metrics
 
 
-def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict) -> None:
+def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict, figures: bool = True) -> None:
+    """curves.csv, params/, and with ``figures`` the figures and ``metrics["best_trial"]`` (its team episode)."""
     tasks, env = b["tasks"], b["env"]
     trials = co["train_return"].shape[0]
     with open(out / "curves.csv", "w", newline="") as f:
@@ -412,6 +413,8 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
         blob = {"subpolicies": jax.tree.map(lambda x: np.asarray(x[j]), best_sub),
                 "coordinator": jax.tree.map(lambda x: np.asarray(x[j]), co["best_params"])}
         (out / "params" / f"trial_{j}.msgpack").write_bytes(serialization.to_bytes(blob))
+    if not figures:
+        return
     # the optimum of a fixed-start task; random-start tasks have one per start (not drawn)
     opt = [int(b["task_params"].dist[k, t.test_starts[0, 3], t.test_starts[0, 0], t.test_starts[0, 1],
                                      t.test_starts[0, 2]])

@@ -86,7 +86,7 @@ class Experiment:
         play = jax.vmap(jax.vmap(lambda r, k: scripted.rollout(self.env, r, k), (0, None)), (None, 0))
         return jax.device_get(jax.jit(play)(resets, self.keys))
 
-    def finish(self, out: Path, outcomes: dict) -> dict:
+    def finish(self, out: Path, outcomes: dict, figures: bool = True) -> dict:
         from jaxusar.experiments.train import environment_info
 
         env, cfg = self.env, self.cfg
@@ -101,12 +101,13 @@ class Experiment:
             line = (f"team steps {judged['team_steps']} against the {judged['reference']} "
                     f"{judged['optimal_team_steps']}; optimal in {sum(judged['optimal'])} of {len(self.keys)} trials")
         print(f"[scripted] {line}", flush=True)
-        shown = jax.device_get(jax.jit(lambda r, k: scripted.rollout(env, r, k, trace=True))(resets[0], self.keys[0]))
-        steps = int(shown["steps"])
-        save_episode_strip(env, jax.tree.map(lambda x: x[:steps + 1], shown["states"]), out / "team_episode.png",
-                           rewards=shown["rewards"][:steps],
-                           suptitle=f"the scripted team on {env.layout.name}" + (", draw 0" if env.n_drawn else "")
-                           + f": {steps} steps, return {float(shown['return']):g}")
+        if figures:
+            shown = jax.device_get(jax.jit(lambda r, k: scripted.rollout(env, r, k, trace=True))(resets[0], self.keys[0]))
+            steps = int(shown["steps"])
+            save_episode_strip(env, jax.tree.map(lambda x: x[:steps + 1], shown["states"]), out / "team_episode.png",
+                               rewards=shown["rewards"][:steps],
+                               suptitle=f"the scripted team on {env.layout.name}" + (", draw 0" if env.n_drawn else "")
+                               + f": {steps} steps, return {float(shown['return']):g}")
         return {"algorithm": "scripted", "trials": len(self.keys), "draws": len(resets), **judged,
                 "env_steps": [0] * len(self.keys), "config": cfg.to_dict(), "config_hash": cfg.hash(),
                 "environment": environment_info()}

@@ -1,7 +1,8 @@
 """Run one algorithm's N trials and write its results folder (side effects live here, not in core).
 
 An algorithm's experiment is an object with ``chains`` (lists of ``runner.Stage``: the trainers to run),
-``finish(out, outcomes) -> metrics`` (writes everything but metrics.json, prints the result lines) and
+``finish(out, outcomes, figures=True) -> metrics`` (writes everything but metrics.json, the figures only with
+``figures``: ``benchmark --quick`` writes none per run; prints the result lines) and
 ``FIGURES`` (the figures it writes, for ``jaxusar train --help``). A flat learner
 (IQL, or a fork's ``jaxusar/algos/<name>.py`` with ``ALGORITHM`` and ``make_learner``) gets
 ``FlatExperiment``; the hierarchical method and option-critic name theirs (``EXPERIMENT``:
@@ -262,14 +263,15 @@ class FlatExperiment:
         self.env, self.reference, _, trainer = build(cfg)
         self.chains = [[Stage(cfg.algo, trainer, keys)]]
 
-    def finish(self, out: Path, outcomes: dict[str, Outcome]) -> dict:
+    def finish(self, out: Path, outcomes: dict[str, Outcome], figures: bool = True) -> dict:
         cfg, o = self.cfg, outcomes[self.cfg.algo]
         results = o.results
         metrics = flat_metrics(cfg, results, self.reference, o)
         write_trial_files(out, results)
-        training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
-                        optimal_steps=self.reference["steps"], reward_range=reward_range(self.env),
-                        reference=self.reference["reference"])
+        if figures:
+            training_figure(results, out / "curves.png", f"{cfg.algo} on {cfg.env.map}", horizon=self.env.horizon,
+                            optimal_steps=self.reference["steps"], reward_range=reward_range(self.env),
+                            reference=self.reference["reference"])
         print(f"[{cfg.algo}] {in_words(results['episodes_to_optimal'], cfg.train.episodes)}", flush=True)
         return metrics
 
