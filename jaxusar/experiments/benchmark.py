@@ -55,8 +55,8 @@ ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
 # Option-critic runs one K here: 2, the only one that learned in the paper (Table II, Fig. 5).
 SETTINGS = {"doc": ["doc.options=[2]"]}
 # --quick: reduced budgets and QUICK_TRIALS trials (unless --trials is given), the same pipeline, every task
-# and algorithm within 15 minutes on a 2-core CPU (docs/benchmark.md); the paper's method's sub-policies take
-# most of it. Halving the trials rather than the sub-policies' 20 episodes keeps a learning signal in the
+# and algorithm in 13 minutes on a 2-core Intel Xeon, 22 on a 2-core AMD EPYC (results/benchmark_quick/):
+# compiling takes half, the paper's method's sub-policies most of the rest. Halving the trials rather than the sub-policies' 20 episodes keeps a learning signal in the
 # paper's method's row (at 10 episodes it scores about 0, like the flat learners at 100).
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
          **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}  # scripted: nothing to train
