@@ -88,6 +88,7 @@ class Task:
     clears: int = 0       # CLEAR: the mode bits of its rubble group (done when all are cleared); 0 otherwise
     targets: tuple[int, ...] = ()  # goal-conditioned TRIAGE (drawn victims): the slot of each goal index
     every_mode: bool = True  # False: its states are mode 0's only (no mode's rubble changes its way)
+    arrays: tuple | None = dataclasses.field(default=None, compare=False, repr=False)  # ``_task_arrays``, once
 
     @property
     def goal_regions(self) -> tuple[int, ...]:
@@ -231,10 +232,10 @@ def make_tasks(env: USAREnv, options: Options, triage_start: str = "room", navig
             starts, initiation = states(from_), states(in_room)
             tasks.append(Task(options.names[o], o, -1, starts, starts, initiation, -1, -1 if drawn else slots[0],
                               targets=tuple(slots) if drawn else ()))
+    tasks = [dataclasses.replace(t, arrays=_task_arrays(env, t)) for t in tasks]  # planned once, kept
     if rubble.n_cells:  # a mode's rubble may cut a state off its goal: such states are no task's
-        dists = [_task_arrays(env, t)[3] for t in tasks]
-        tasks = [_reachable(t, d) for t, d in zip(tasks, dists)]
-        tasks = [_in_mode_zero(t, d, rubble.n_modes) if t.targets else t for t, d in zip(tasks, dists)]
+        tasks = [_reachable(t, t.arrays[3]) for t in tasks]
+        tasks = [_in_mode_zero(t, t.arrays[3], rubble.n_modes) if t.targets else t for t in tasks]
     return tasks
 
 
@@ -339,7 +340,7 @@ def task_params(env: USAREnv, tasks: list[Task], dqn_gamma: float,
     for t in tasks:
         if not len(t.initiation):
             raise ConfigError(f"task {t.name}: no state of its initiation set can reach its sub-goal")
-        solid, victim_at, goals, dist, wait = _task_arrays(env, t)
+        solid, victim_at, goals, dist, wait = t.arrays or _task_arrays(env, t)
         goals, dist, wait = pad(goals, n_goals), pad(dist, n_goals * n_modes), pad(wait, n_goals * n_modes)
         victim_at = pad(victim_at, n_goals)
         for k in ("test_starts", "initiation"):
