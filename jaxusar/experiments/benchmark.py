@@ -44,11 +44,11 @@ import jax
 import numpy as np
 
 from jaxusar import algos, config, envs, planning
+from jaxusar.envs.layout import load_layout
 from jaxusar.experiments import reproduce, stats, train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.suite import Task, materialize, resolve
 from jaxusar.experiments.plots import benchmark_figures, reward_range
-from jaxusar.envs.layout import load_layout
 from jaxusar.experiments.usage import Usage
 
 ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
@@ -56,8 +56,9 @@ ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
 SETTINGS = {"doc": ["doc.options=[2]"]}
 # --quick: reduced budgets and QUICK_TRIALS trials (unless --trials is given), the same pipeline, every task
 # and algorithm in 13 minutes on a 2-core Intel Xeon, 22 on a 2-core AMD EPYC (results/benchmark_quick/):
-# compiling takes half, the paper's method's sub-policies most of the rest. Halving the trials rather than the sub-policies' 20 episodes keeps a learning signal in the
-# paper's method's row (at 10 episodes it scores about 0, like the flat learners at 100).
+# compiling takes half, the paper's method's sub-policies most of the rest. Halving the trials rather than
+# the sub-policies' 20 episodes keeps a learning signal in the paper's method's row (at 10 episodes it
+# scores about 0, like the flat learners at 100).
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
          **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}  # scripted: nothing to train
 # ... and where victims are drawn, 10 episodes per sub-policy: there the paper's method scores about 0 at
