@@ -227,7 +227,10 @@ class Trainer:
         obs, env_state = self._reset(k_env, env_params)
         actor = self.learner.init_carry()
         action = jnp.zeros(self.learner.action_shape, jnp.int32)
-        next_obs, _, reward, done, info = self._step(env_state, action, env_params)
+        # the learner's init reads only the transition's shapes: zeros shaped like a step keep the env's step
+        # out of this program (it compiles once per trainer; the step made it seconds longer on big maps)
+        step = jax.eval_shape(self._step, env_state, action, env_params)
+        next_obs, _, reward, done, info = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), step)
         transition = {"obs": obs, "action": action, "reward": reward, "next_obs": next_obs, "done": done,
                       "info": info, "carry": actor, "next_carry": actor}
         learner = self.learner.init(k_learner, transition)
