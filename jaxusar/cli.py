@@ -402,9 +402,9 @@ def add_benchmark(subparsers) -> None:
     p.add_argument("--algorithms", nargs="+", default=None, metavar="ALGO",
                    help="hierarchical, doc, iql, vdn, qmix, scripted (default: all)")
     p.add_argument("--trials", type=int, default=None,
-                   help="independent seeds per task and algorithm (default 8; 4 with --quick)")
+                   help="independent seeds per task and algorithm (default 8; 2 with --quick)")
     p.add_argument("--quick", action="store_true",
-                   help="reduced budgets and 4 trials, no per-run figures: the whole suite in minutes, for a "
+                   help="reduced budgets and 2 trials, no per-run figures: the whole suite in minutes, for a "
                         "first look")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="results folder (default results/benchmark)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="[ALGO.]KEY=VALUE",

@@ -140,5 +140,28 @@ def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripte
     assert drawn["hierarchical"].train.episodes == 10 and drawn["iql"].train.episodes == 100
     assert benchmark.configs(suite.TASKS["minimap-v1"], "minimap", quick=False, sets=[])["hierarchical"].train.episodes \
         == 600  # the method's default
-    assert benchmark.trial_count(None, quick=True) == 4 and benchmark.trial_count(None, quick=False) == 8
-    assert benchmark.trial_count(2, quick=True) == 2  # --trials, when given, wins
+    assert benchmark.trial_count(None, quick=True) == 2 and benchmark.trial_count(None, quick=False) == 8
+    assert benchmark.trial_count(3, quick=True) == 3  # --trials, when given, wins
+
+
+def test_threads_printing_inside_per_thread_each_get_their_own_lines_back(capsys):
+    """benchmark.score_all scores pairs in threads; each pair's lines must come back whole, not interleaved."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from jaxusar.experiments import stdout
+
+    turn = threading.Barrier(2)
+
+    def one(name):
+        with stdout.captured() as text:
+            for line in range(3):
+                print(f"{name} {line}")
+                turn.wait(timeout=10)  # the other thread prints between this thread's lines
+        return text.getvalue()
+
+    with stdout.per_thread(), ThreadPoolExecutor(2) as pool:
+        texts = list(pool.map(one, ["a", "b"]))
+        print("main")
+    assert texts == ["a 0\na 1\na 2\n", "b 0\nb 1\nb 2\n"]
+    assert capsys.readouterr().out == "main\n"  # only what no thread captured reached stdout

@@ -38,6 +38,7 @@ import shlex
 import shutil
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -45,7 +46,7 @@ import numpy as np
 
 from jaxusar import algos, config, envs, planning
 from jaxusar.envs.layout import load_layout
-from jaxusar.experiments import reproduce, stats, train
+from jaxusar.experiments import reproduce, stats, stdout, train
 from jaxusar.experiments.runner import Runner, gather
 from jaxusar.experiments.suite import Task, materialize, resolve
 from jaxusar.experiments.plots import benchmark_figures, reward_range
@@ -55,17 +56,17 @@ ALGORITHMS = ("hierarchical", "doc", "iql", "vdn", "qmix", "scripted")
 # Option-critic runs one K here: 2, the only one that learned in the paper (Table II, Fig. 5).
 SETTINGS = {"doc": ["doc.options=[2]"]}
 # --quick: reduced budgets and QUICK_TRIALS trials (unless --trials is given), the same pipeline, every task
-# and algorithm in 13 minutes on a 2-core Intel Xeon, 22 on a 2-core AMD EPYC (results/benchmark_quick/):
-# compiling takes half, the paper's method's sub-policies most of the rest. Halving the trials rather than
-# the sub-policies' 20 episodes keeps a learning signal in the paper's method's row (at 10 episodes it
-# scores about 0, like the flat learners at 100).
+# and algorithm (results/benchmark_quick/: its time on a 2-core AMD EPYC and Intel Xeon): compiling takes
+# half, the paper's method's sub-policies most of the rest. Fewer trials rather than fewer than 20
+# sub-policy episodes keep a learning signal in the paper's method's row (at 10 episodes it scores about
+# 0, like the flat learners at 100); compiling does not shrink with either.
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30"],
          **{a: ["train.episodes=100"] for a in ("doc", "iql", "vdn", "qmix")}}  # scripted: nothing to train
 # ... and where victims are drawn, 10 episodes per sub-policy: there the paper's method scores about 0 at
 # either budget (minimap-v1: 0.004 at 20), and its 18 sub-policies' 10 episodes end within one chunk of
 # 4,000 steps, not two (minimap-v1's sub-policy stage, alone on the 2-core AMD EPYC: 144 s at 20 episodes).
 QUICK_DRAWN = {"hierarchical": ["train.episodes=10"]}
-TRIALS, QUICK_TRIALS = 8, 4
+TRIALS, QUICK_TRIALS = 8, 2
 TARGET = 0.9  # "env steps to 90% of the reference"
 CURVE_POINTS = 40
 
@@ -207,6 +208,29 @@ def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
             "final_steps": steps.mean(1).round(2).tolist()}
 
 
+def score_all(pairs: list[Pair], planned, outcomes: dict, out: Path, quick: bool, workers: int) -> dict:
+    """Each pair's own results folder (its experiment's ``finish``) and scores, {(task id, algo): score_pair}.
+    With ``quick`` (no figures: pyplot is not thread-safe) ``workers`` pairs at a time, as their greedy
+    replays compile and run outside the GIL; each pair's printed lines come out together, in pair order."""
+
+    def one(pair: Pair) -> tuple[dict, str]:
+        task, env, _, ref = next(p for p in planned if p[0] is pair.task)
+        own = {name[len(pair.prefix) + 1:]: o for name, o in outcomes.items() if name.startswith(pair.prefix + "/")}
+        folder = out / "runs" / task.id / pair.algo
+        with stdout.captured() as text:
+            metrics = pair.experiment.finish(folder, own, figures=not quick)
+            (folder / "metrics.json").write_text(json.dumps(metrics, indent=2))
+            score = score_pair(pair, outcomes, ref, test_keys(task, env))
+        return score, text.getvalue()
+
+    scored = {}
+    with stdout.per_thread(), ThreadPoolExecutor(workers if quick else 1) as pool:
+        for pair, (score, text) in zip(pairs, pool.map(one, pairs)):
+            print(text, end="", flush=True)
+            scored[pair.task.id, pair.algo] = score
+    return scored
+
+
 # -- the command ------------------------------------------------------------------------------------
 def plan(tasks: list[Task], algorithms: list[str], explicit: bool, out: Path, quick: bool, sets: list[str]
          ) -> tuple[list[tuple[Task, object, dict, dict]], list[dict]]:
@@ -314,13 +338,7 @@ def run(tasks: list[str] | None = None, algorithms: list[str] | None = None, tri
             outcomes = gather(outcomes, {s.name: s for c in chains for s in c})
             if jax.process_index() != 0:
                 return {}
-            scored = {}
-            for pair in pairs:
-                task, env, _, ref = next(p for p in planned if p[0] is pair.task)
-                own = {name[len(pair.prefix) + 1:]: o for name, o in outcomes.items() if name.startswith(pair.prefix + "/")}
-                metrics = pair.experiment.finish(out / "runs" / task.id / pair.algo, own, figures=not quick)
-                (out / "runs" / task.id / pair.algo / "metrics.json").write_text(json.dumps(metrics, indent=2))
-                scored[task.id, pair.algo] = score_pair(pair, outcomes, ref, test_keys(task, env))
+            scored = score_all(pairs, planned, outcomes, out, quick, n_workers)
         except KeyboardInterrupt:
             raise runner.interrupted() from None
     results = summarize(planned, names, scored, skipped, trials, quick)
