@@ -311,6 +311,10 @@ class ExperimentConfig:
                               "lr_end in (0, lr]")
         if t.test_every > t.episodes:
             raise ConfigError(f"train.test_every={t.test_every} exceeds train.episodes={t.episodes}: no test would run")
+        c = self.hierarchical.coordinator
+        if self.algo == "hierarchical" and c.test_every > c.episodes:
+            raise ConfigError(f"hierarchical.coordinator.test_every={c.test_every} exceeds hierarchical.coordinator."
+                              f"episodes={c.episodes}: no team test would run")
         if t.chunk_steps < d.train_every:
             raise ConfigError(f"train.chunk_steps={t.chunk_steps} is below dqn.train_every={d.train_every}")
         check_map_path(self.env.map, "env.map: ")

@@ -445,6 +445,8 @@ def test_iql_learners_share_nothing():
     (["train.episodes=-3"], "train.episodes"), (["dqn.bogus=1"], "dqn.bogus"),
     (["train.episodes=ten"], "train.episodes"), (["dqn.hidden=64"], "dqn.hidden"),
     (["dqn.double_dqn=1"], "double_dqn"), (["nokey"], "key=value"), (["dqn.loss=l1"], "dqn.loss"),
+    (["algo=hierarchical", "hierarchical.coordinator.episodes=4", "hierarchical.coordinator.test_every=5"],
+     r"hierarchical.coordinator.test_every=5 exceeds hierarchical.coordinator.episodes=4: no team test"),
 ])
 def test_config_errors_name_the_key(sets, match):
     with pytest.raises(ConfigError, match=match):
