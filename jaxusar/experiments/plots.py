@@ -180,6 +180,9 @@ def benchmark_figures(results: dict, out: Path) -> list[Path]:
             ax.plot([point, point], [y - 0.3, y + 0.3], color="black", lw=1.5)
         ax.set_title(metric.replace("_", " ").replace("iqm", "IQM"))
         ax.set_xlabel("normalized score")
+        # the whole score range, with room at both ends: a point at 0 or at the reference is not on the frame
+        top = max(1.0, *(algos_[a]["aggregates"][metric][2] for a in names))
+        ax.set_xlim(-0.03 * top, 1.03 * top)
         ax.grid(axis="x", alpha=0.3)
     axes[0].set_yticks(range(len(names)), [f"{a} ({len(algos_[a]['tasks'])} tasks)" for a in names])
     fig.suptitle("aggregate final scores, 95% stratified bootstrap intervals (bar) and point estimate (line)")
