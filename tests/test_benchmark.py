@@ -88,6 +88,10 @@ def test_a_tiny_benchmark_writes_its_leaderboard_figures_and_counts_env_steps(tm
     argv = ["benchmark", "--tasks", "two_rooms-v1", "gen_9x13-v1", "--algorithms", "iql", "vdn", "scripted", "--trials", "2",
             "--out", str(out), "--quiet", "--set", "env.horizon=40"] + [x for s in TINY for x in ("--set", s)]
     assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()  # each run's result lines, led by its task, task by task
+    assert "[two_rooms-v1] [scripted] team steps [18, 18] against the optimum 18; optimal in 2 of 2 trials" in lines
+    tagged = [line.split()[0] for line in lines if line.startswith("[two_rooms-v1] ") or line.startswith("[gen_9x13-v1] ")]
+    assert tagged == sorted(tagged, key=["[two_rooms-v1]", "[gen_9x13-v1]"].index) and len(set(tagged)) == 2
     for name in ("leaderboard.md", "tasks.md", "results.json", "aggregates.png", "profile.png", "improvement.png",
                  "sample_efficiency.png"):
         assert (out / name).stat().st_size > 0, name

@@ -211,7 +211,8 @@ def score_pair(pair: Pair, outcomes: dict, ref: dict, keys: jax.Array) -> dict:
 def score_all(pairs: list[Pair], planned, outcomes: dict, out: Path, quick: bool, workers: int) -> dict:
     """Each pair's own results folder (its experiment's ``finish``) and scores, {(task id, algo): score_pair}.
     With ``quick`` (no figures: pyplot is not thread-safe) ``workers`` pairs at a time, as their greedy
-    replays compile and run outside the GIL; each pair's printed lines come out together, in pair order."""
+    replays compile and run outside the GIL; each pair's printed lines come out together, in pair order,
+    each led by its task's id (the experiments' own lines name only the algorithm)."""
 
     def one(pair: Pair) -> tuple[dict, str]:
         task, env, _, ref = next(p for p in planned if p[0] is pair.task)
@@ -226,7 +227,7 @@ def score_all(pairs: list[Pair], planned, outcomes: dict, out: Path, quick: bool
     scored = {}
     with stdout.per_thread(), ThreadPoolExecutor(workers if quick else 1) as pool:
         for pair, (score, text) in zip(pairs, pool.map(one, pairs)):
-            print(text, end="", flush=True)
+            print("".join(f"[{pair.task.id}] {line}" for line in text.splitlines(keepends=True)), end="", flush=True)
             scored[pair.task.id, pair.algo] = score
     return scored
 
