@@ -101,3 +101,18 @@ def test_train_scripted_on_a_map_with_no_medic_is_one_line(tmp_path, capsys):
         main(["train", "scripted", "--map", str(tmp_path / "eng.txt"), "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "no medic" in err[0] and not (tmp_path / "x").exists()
+
+
+def test_the_scripted_experiment_plays_each_set_of_draws_once(monkeypatch):
+    """``finish`` and a benchmark's scoring judge the same draws: the second asks for what the first played."""
+    from jaxusar import algos, config
+    from jaxusar.experiments.scripted import Experiment
+
+    exp = Experiment(config.load(None, ["env.map=two_rooms"], defaults=algos.defaults("scripted")),
+                     jax.random.split(jax.random.PRNGKey(0), 2))
+    traced, rollout = [], scripted.rollout
+    monkeypatch.setattr(scripted, "rollout", lambda *a, **k: traced.append(1) or rollout(*a, **k))
+    first = exp.play(judging_keys(exp.env))
+    assert exp.play(judging_keys(exp.env)) is first and len(traced) == 1
+    other = exp.play(jax.random.split(jax.random.PRNGKey(7), 3))
+    assert len(traced) == 2 and other["return"].shape == (2, 3) and first["return"].shape == (2, 1)
