@@ -171,6 +171,10 @@ class TrainConfig:
                              "every test of a trial (return and steps: their means; solved: all of them); where "
                              "victims are drawn the map-derived default is 8, so that the kept params are the best "
                              "on the same draws, not on the easiest draw", added=True)
+    drop_finished: bool = _field(True, doc="between chunks, run only the trials still short of their episodes "
+                                 "once they fit a smaller batch (compiled once per batch size); false steps every "
+                                 "trial to the end (the benchmark's --quick: there a smaller batch's compiling "
+                                 "costs more than its chunks save)", added=True)
 
 
 @dataclasses.dataclass(frozen=True)

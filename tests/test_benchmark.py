@@ -140,6 +140,7 @@ def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripte
     assert set(cfgs) == set(benchmark.ALGORITHMS)
     assert cfgs["iql"].train.episodes == 100 and cfgs["hierarchical"].hierarchical.coordinator.episodes == 30
     assert cfgs["hierarchical"].train.episodes == 20
+    assert not any(c.train.drop_finished for a, c in cfgs.items() if a != "scripted")  # too short to pay
     drawn = benchmark.configs(suite.TASKS["minimap-v1"], "minimap", quick=True, sets=[])  # victims drawn
     assert drawn["hierarchical"].train.episodes == 10 and drawn["iql"].train.episodes == 100
     assert benchmark.configs(suite.TASKS["minimap-v1"], "minimap", quick=False, sets=[])["hierarchical"].train.episodes \

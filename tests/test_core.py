@@ -316,15 +316,17 @@ def test_trial_equals_running_alone_and_is_deterministic():
 
 def test_finished_trials_stop_running_and_no_result_changes():
     """Between chunks, once at most half the trials lack episodes, only those run (a power-of-two batch,
-    padded); every number equals the run that steps all trials to the end, best params included."""
+    padded); every number equals the run that steps all trials to the end (train.drop_finished=false), best
+    params included."""
     _, _, tr = _tiny_trainer(episodes=40, **{"train.chunk_steps": 100})
     keys = jax.random.split(jax.random.PRNGKey(2), 8)
     calls = []
     run_lanes = tr._lanes_chunk
     tr._lanes_chunk = lambda state, lanes: calls.append(lanes) or run_lanes(state, lanes)
     dropped = tr.train(keys)
-    tr.drop_finished = False
-    full = tr.train(keys)
+    _, _, kept = _tiny_trainer(episodes=40, **{"train.chunk_steps": 100, "train.drop_finished": "false"})
+    kept._lanes_chunk = lambda state, lanes: calls.append(("kept", lanes)) or run_lanes(state, lanes)
+    full = kept.train(keys)
     assert calls and all(len(c) < 8 and len(c) & (len(c) - 1) == 0 for c in calls), calls
     assert [c.tolist() for c in calls] == [[1, 5, 6, 8]]  # trials 1, 5, 6 and a padding lane (8: writes dropped)
     a, b = tr.results(dropped), tr.results(full)

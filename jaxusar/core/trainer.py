@@ -38,7 +38,8 @@ exactly those of running it alone. Between chunks the host drops finished trials
 running fit a smaller bucket than the whole batch (a power of two, or three quarters of one:
 ``batch_bucket``), the next chunks run those only, gathered into a batch padded to that bucket and
 scattered back (``lanes_to_run``), so a slow trial no longer makes every finished one pay (each smaller
-batch compiles its chunk once, counted in the run's seconds).
+batch compiles its chunk once, counted in the run's seconds; ``train.drop_finished=false`` keeps the
+whole batch, where runs are too short for that compile to pay).
 
 Episode ``i``'s return and length, test ``j`` (after training episode ``(j + 1) * test_every``), the
 best test's params (paper Sec. V: catastrophic forgetting) and ``episodes_to_optimal`` (the
@@ -164,15 +165,13 @@ class Trainer:
       optimal_steps: a test episode is optimal when it terminates within optimal_steps + slack steps.
       min_episode_steps: fewest env steps any episode can take (checks that no two tests fall between
         updates); defaults to min(optimal_steps, horizon).
-      drop_finished: between chunks, run only the trials still short of their episodes once they fit a
-        smaller bucketed batch (``lanes_to_run``); False steps every trial to the end.
     """
 
     def __init__(self, env, learner, cfg: TrainConfig, *, learning_starts: int, train_every: int,
                  optimal_steps: int, min_episode_steps: int | None = None, test_horizon: int | None = None,
-                 gradient_steps: int = 1, drop_finished: bool = True):
+                 gradient_steps: int = 1):
         self.env, self.learner, self.cfg = env, learner, cfg
-        self.drop_finished = drop_finished
+        self.drop_finished = cfg.drop_finished  # lanes_to_run
         self.learning_starts, self.train_every = learning_starts, train_every
         self.gradient_steps = int(gradient_steps)
         self.optimal_steps = int(optimal_steps)

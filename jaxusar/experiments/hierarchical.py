@@ -72,17 +72,17 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
                            dodge=c.dodge, cells=c.features == "cells", own_termination=c.termination == "own",
                            option_goals=sp.option_goals(options, tasks), **slot_tables(options, tasks, params))
     coord_learner = coord.make_learner(macro, c)
-    coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
-                              optimal_slack=cfg.train.optimal_slack, stop_at_optimal=c.stop_at_optimal,
-                              test_draws=cfg.train.test_draws)
-    reference = planning.team_reference(world)
-    optimal = reference["steps"]
     # the coordinator's chunks take a second or two, less than compiling a smaller batch's program: its
     # stopped trials stay in the batch (masked) and the stage ends once every trial has stopped
     # (benchmarks/README.md, "The coordinator's cost"; the same results either way)
+    coord_train = TrainConfig(episodes=c.episodes, test_every=c.test_every, chunk_steps=c.chunk_steps,
+                              optimal_slack=cfg.train.optimal_slack, stop_at_optimal=c.stop_at_optimal,
+                              test_draws=cfg.train.test_draws, drop_finished=False)
+    reference = planning.team_reference(world)
+    optimal = reference["steps"]
     coord_trainer = Trainer(macro, coord_learner, coord_train, learning_starts=c.learning_starts, train_every=1,
                             gradient_steps=c.gradient_steps, optimal_steps=optimal, min_episode_steps=1,
-                            test_horizon=env.horizon, drop_finished=False)
+                            test_horizon=env.horizon)
     return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
                 sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,
                 optimal=optimal, reference=reference)
