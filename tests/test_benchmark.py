@@ -149,6 +149,30 @@ def test_quick_budgets_configure_every_algorithm_including_the_untrained_scripte
     assert benchmark.trial_count(3, quick=True) == 3  # --trials, when given, wins
 
 
+def test_the_suites_time_to_go_counts_each_trainers_compiling(capsys):
+    """A trainer with little to run still compiles: with the big one done, the small one's share of the
+    work left is its TRAINER_COST, not ~0 (under --quick the time to go said 26 s with 194 s left)."""
+    from types import SimpleNamespace as NS
+
+    from jaxusar.experiments import benchmark, reproduce
+
+    def stage(name, lanes, episodes):
+        trainer = NS(cfg=NS(episodes=episodes), test_horizon=300, train_every=1, gradient_steps=1,
+                     learner=NS(cfg=NS(batch_size=64)))
+        return NS(name=name, keys=[None] * lanes, trainer=trainer)
+
+    big, small = stage("big", 36, 20), stage("small", 2, 1)
+    progress = benchmark.suite_progress([[big], [small]], quiet=False)
+    progress("big", {"chunk": 1, "episodes_min": 20, "episodes_mean": 20.0, "episodes_total": 20, "elapsed": 1.0,
+                     "eta": 0.0})
+    line = capsys.readouterr().out.splitlines()[-1]
+    cost = reproduce.expected_cost(big) + benchmark.TRAINER_COST
+    share = cost / (cost + reproduce.expected_cost(small) + benchmark.TRAINER_COST)
+    assert reproduce.expected_cost(small) < 0.01 * reproduce.expected_cost(big) and share < 0.95
+    assert line.startswith(f"[benchmark] 1/2 trainers done ({share:.0%} of the expected work)"), line
+    assert benchmark.suite_progress([[big]], quiet=True) is None
+
+
 def test_threads_printing_inside_per_thread_each_get_their_own_lines_back(capsys):
     """benchmark.score_all scores pairs in threads; each pair's lines must come back whole, not interleaved."""
     import threading

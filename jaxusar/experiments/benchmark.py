@@ -72,6 +72,10 @@ QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episode
 QUICK_DRAWN = {"hierarchical": ["train.episodes=10"]}
 TRIALS, QUICK_TRIALS = 8, 2
 TARGET = 0.9  # "env steps to 90% of the reference"
+# A trainer's compiling and start, in ``reproduce.expected_cost``'s units, for the suite's time to go: about
+# 9-14 s a trainer two at a time, and under --quick most of a flat learner's time (fit to the trainers'
+# ends of three --quick runs on the 2-core AMD EPYC; without it the time to go said 26 s with 194 s left).
+TRAINER_COST = 1.5e7
 CURVE_POINTS = 40
 
 
@@ -276,11 +280,11 @@ def check_algorithms(names: list[str] | None) -> list[str]:
 
 def suite_progress(chains: list, quiet: bool):
     """Each trainer's progress lines, and after each trainer ends one line on the whole suite: trainers done,
-    their share of the expected work (``reproduce.expected_cost``, a rough bound) and the time to go at
-    that pace. Called from the Runner's threads."""
+    their share of the expected work (``reproduce.expected_cost`` and ``TRAINER_COST`` each, a rough bound)
+    and the time to go at that pace. Called from the Runner's threads."""
     if quiet:
         return None
-    cost = {s.name: reproduce.expected_cost(s) for c in chains for s in c}
+    cost = {s.name: reproduce.expected_cost(s) + TRAINER_COST for c in chains for s in c}
     total, done, start, lock = sum(cost.values()), set(), time.perf_counter(), threading.Lock()
 
     def progress(name: str, p: dict) -> None:
