@@ -62,10 +62,9 @@ SETTINGS = {"doc": ["doc.options=[2]"]}
 # 0, like the flat learners at 100); compiling does not shrink with either.
 # Finished trials stay in the batch (train.drop_finished=false): at these budgets the chunks that a smaller
 # batch would save take less than compiling its program (the paper's method on four_rooms, two_rooms_rubble
-# and office, 2 trials alone on the 2-core AMD EPYC: 3-6 s less a map).
+# and office, 2 trials alone on the 2-core AMD EPYC: 3-6 s less a map). The scripted team trains nothing.
 QUICK = {"hierarchical": ["train.episodes=20", "hierarchical.coordinator.episodes=30", "train.drop_finished=false"],
          **{a: ["train.episodes=100", "train.drop_finished=false"] for a in ("doc", "iql", "vdn", "qmix")}}
-# (scripted: nothing to train)
 # ... and where victims are drawn, 10 episodes per sub-policy: there the paper's method scores about 0 at
 # either budget (minimap-v1: 0.004 at 20), and its 18 sub-policies' 10 episodes end within one chunk of
 # 4,000 steps, not two (minimap-v1's sub-policy stage, alone on the 2-core AMD EPYC: 144 s at 20 episodes).
