@@ -325,8 +325,10 @@ def test_finished_trials_stop_running_and_no_result_changes():
     tr._lanes_chunk = lambda state, lanes: calls.append(lanes) or run_lanes(state, lanes)
     dropped = tr.train(keys)
     _, _, kept = _tiny_trainer(episodes=40, **{"train.chunk_steps": 100, "train.drop_finished": "false"})
-    kept._lanes_chunk = lambda state, lanes: calls.append(("kept", lanes)) or run_lanes(state, lanes)
+    kept_calls = []
+    kept._lanes_chunk = lambda state, lanes: kept_calls.append(lanes) or run_lanes(state, lanes)
     full = kept.train(keys)
+    assert not kept_calls  # the config's drop_finished=false reached the trainer: no smaller batch ran
     assert calls and all(len(c) < 8 and len(c) & (len(c) - 1) == 0 for c in calls), calls
     assert [c.tolist() for c in calls] == [[1, 5, 6, 8]]  # trials 1, 5, 6 and a padding lane (8: writes dropped)
     a, b = tr.results(dropped), tr.results(full)
