@@ -1,4 +1,4 @@
-"""The flat (paper) and factored coordinators side by side, over exact sub-policies.
+"""The flat (paper) and factored coordinators side by side, over exact sub-policies (or a run's trained ones).
 
 Exact sub-policies (``subpolicies.exact_subpolicies``: shortest-path actions from the planner's
 distance tables) isolate the coordinator: each map's default coordinator settings, 8 trials
@@ -9,9 +9,17 @@ ratio to the lower bound, the network's parameters, and compile + run seconds; o
 drawn, each trial's kept coordinator judged on the fixed draws (``scripted.judge``: normalized score,
 draws with every victim saved, critical victims saved).
 
+With ``--subpolicies RUN`` the coordinators run over a hierarchical run's trained sub-policies instead
+(RUN: the folder with its metrics.json and params/, e.g. results/minimap/hierarchical): its config is
+the base, under the map's derived defaults, its settings file and ``--set``, so coordinator variants can
+be compared over the same trained sub-policies without training them again. With the run's seed and
+trials, at the defaults that made it, this repeats the run's own coordinator stage (the same keys).
+
     python benchmarks/coordinators.py            # writes benchmarks/results/coordinators.json
     python benchmarks/coordinators.py --maps office --kinds factored \
         --set hierarchical.coordinator.block_patience=2 --out /tmp/office.json   # one variant, one map
+    python benchmarks/coordinators.py --maps minimap --kinds factored --seed 1000 \
+        --subpolicies runs/minimap-1000 --set hierarchical.coordinator.n_step=1   # over trained sub-policies
 """
 
 from __future__ import annotations
@@ -25,6 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flax import serialization
+
 from jaxusar import algos, config
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
@@ -35,14 +45,37 @@ from jaxusar.experiments.train import environment_info, greedy_episodes
 MAPS = ("two_rooms", "three_rooms", "four_rooms", "office")
 
 
-def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, ...] = ()) -> dict:
+def trained(folder: Path, trials: int) -> tuple[dict, dict]:
+    """A hierarchical run folder's metrics and its first ``trials`` trials' kept sub-policy params, stacked
+    [trial, task, ...] (``params/trial_J.msgpack``, as the run wrote them)."""
+    files = [folder / "metrics.json", *(folder / "params" / f"trial_{j}.msgpack" for j in range(trials))]
+    missing = next((f for f in files if not f.is_file()), None)
+    if missing is not None:
+        raise SystemExit(f"--subpolicies {folder}: no {missing} (a hierarchical run folder of >= {trials} trials)")
+    metrics = json.loads(files[0].read_text())
+    if metrics.get("algorithm") != "hierarchical":
+        raise SystemExit(f"--subpolicies {folder}: a run of {metrics.get('algorithm')!r}, not of hierarchical")
+    blobs = [serialization.msgpack_restore(f.read_bytes())["subpolicies"] for f in files[1:]]
+    return metrics, jax.tree.map(lambda *xs: jnp.stack(xs), *blobs)
+
+
+def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, ...] = (),
+        subpolicies: tuple[dict, dict] | None = None) -> dict:
+    """One map and coordinator kind over exact sub-policies, or over ``subpolicies`` (``trained``)."""
+    base = algos.defaults("hierarchical") if subpolicies is None else subpolicies[0]["config"]
     cfg = config.load(None, [f"env.map={map_name}", f"hierarchical.coordinator.kind={kind}", f"seed={seed}",
-                             *overrides], defaults=algos.defaults("hierarchical"))
-    probe = hierarchical.build(cfg)
-    act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
-    b = hierarchical.build(cfg, subpolicy_act=act)
+                             *overrides], defaults=base)
     keys = jax.random.split(jax.random.PRNGKey(seed), trials)
-    params = coord.CoordinatorParams(subpolicy=jnp.broadcast_to(tables, (trials, *tables.shape)))
+    if subpolicies is None:
+        probe = hierarchical.build(cfg)
+        act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
+        b = hierarchical.build(cfg, subpolicy_act=act)
+        params = coord.CoordinatorParams(subpolicy=jnp.broadcast_to(tables, (trials, *tables.shape)))
+    else:
+        b = hierarchical.build(cfg)
+        if [t.name for t in b["tasks"]] != subpolicies[0]["tasks"]:
+            raise SystemExit(f"--subpolicies: its run's sub-tasks are not those of {map_name} with these settings")
+        params = coord.CoordinatorParams(subpolicy=subpolicies[1])
     trainer = b["coord_trainer"]
     t = time.perf_counter()
     res = trainer.results(trainer.train(keys, env_params=params))
@@ -76,18 +109,22 @@ def main() -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override for every run (repeatable), as in `jaxusar train --set`")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "coordinators.json")
+    p.add_argument("--subpolicies", type=Path, metavar="RUN",
+                   help="a hierarchical run folder (metrics.json, params/): over its trained sub-policies")
     args = p.parse_args()
+    subpolicies = None if args.subpolicies is None else trained(args.subpolicies, args.trials)
     rows = {}
     for m in args.maps:
         for kind in args.kinds:
             try:
-                row = run(m, kind, args.trials, args.seed, tuple(args.set))
+                row = run(m, kind, args.trials, args.seed, tuple(args.set), subpolicies)
             except config.ConfigError as err:  # the flat head past its limit (office)
                 row = {"refused": str(err)}
             rows[f"{m}/{kind}"] = row
             print(f"{m:12s} {kind:9s} " + json.dumps({k: v for k, v in row.items() if k != "episodes_to_reference"}),
                   flush=True)
     args.out.write_text(json.dumps({"runs": rows, "seed": args.seed, "overrides": args.set,
+                                    "subpolicies": None if args.subpolicies is None else str(args.subpolicies),
                                     "environment": environment_info()}, indent=2))
     print(f"wrote {args.out}")
 
