@@ -35,8 +35,8 @@ def load_subpolicies(run: Path, trials: int):
     for j in range(trials):
         path = run / "params" / f"trial_{j}.msgpack"
         if not path.exists():
-            raise SystemExit(f"{path} is missing: --run must be a finished hierarchical run with at least {trials} "
-                             "trials (its params/ folder)")
+            raise SystemExit(f"{path} is missing: expected a finished hierarchical run's folder with at least "
+                             f"{trials} trials (its params/ folder)")
         blobs.append(serialization.msgpack_restore(path.read_bytes())["subpolicies"])
     return jax.tree.map(lambda *x: jnp.stack(x), *blobs)
 

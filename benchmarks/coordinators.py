@@ -33,8 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flax import serialization
-
+from coordinator_cost import load_subpolicies
 from jaxusar import algos, config
 from jaxusar.algos import coordinator as coord
 from jaxusar.algos import subpolicies as sp
@@ -47,16 +46,14 @@ MAPS = ("two_rooms", "three_rooms", "four_rooms", "office")
 
 def trained(folder: Path, trials: int) -> tuple[dict, dict]:
     """A hierarchical run folder's metrics and its first ``trials`` trials' kept sub-policy params, stacked
-    [trial, task, ...] (``params/trial_J.msgpack``, as the run wrote them)."""
-    files = [folder / "metrics.json", *(folder / "params" / f"trial_{j}.msgpack" for j in range(trials))]
-    missing = next((f for f in files if not f.is_file()), None)
-    if missing is not None:
-        raise SystemExit(f"--subpolicies {folder}: no {missing} (a hierarchical run folder of >= {trials} trials)")
-    metrics = json.loads(files[0].read_text())
+    [trial, task, ...] (``coordinator_cost.load_subpolicies``)."""
+    meta = folder / "metrics.json"
+    if not meta.is_file():
+        raise SystemExit(f"--subpolicies {folder}: no {meta} (a finished hierarchical run's folder)")
+    metrics = json.loads(meta.read_text())
     if metrics.get("algorithm") != "hierarchical":
         raise SystemExit(f"--subpolicies {folder}: a run of {metrics.get('algorithm')!r}, not of hierarchical")
-    blobs = [serialization.msgpack_restore(f.read_bytes())["subpolicies"] for f in files[1:]]
-    return metrics, jax.tree.map(lambda *xs: jnp.stack(xs), *blobs)
+    return metrics, load_subpolicies(folder, trials)
 
 
 def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, ...] = (),
