@@ -828,6 +828,21 @@ def test_an_option_kind_the_map_cannot_offer_is_a_one_line_error_before_anything
     assert "\n" not in str(err.value) and str(err.value).startswith(f"hierarchical.option_kinds={kinds[1:-1]}: ")
 
 
+@pytest.mark.parametrize("header, cell, message", [
+    ("", "V", "victim 1 lies in 'hall', a hall: triage options need a room"),
+    ("random_victims: 1 1\ncritical_triage_steps: 2\ncritical_expires: 40\n---\n", "?",
+     "a victim may lie in 'hall', a hall: triage options need a room"),
+])
+def test_a_victim_outside_every_room_is_a_one_line_error_before_anything_compiles(tmp_path, header, cell, message):
+    """A region grid that puts a victim (or a '?' cell) in a hall: the method's TRIAGE options are rooms'."""
+    (tmp_path / "ward.txt").write_text(f"{header}{cell}..#...\nA..#..{cell}\n.......\n")
+    (tmp_path / "ward.regions.txt").write_text("W west room\nE east room\nH hall hall\n---\nWWW#EEE\nWWW#HHH\nHHHHHHH\n")
+    cfg = config.load(None, [f"env.map={tmp_path / 'ward.txt'}"], defaults=algos_defaults("hierarchical"))
+    with pytest.raises(ConfigError, match=re.escape(message)) as err:
+        hierarchical.build(cfg)
+    assert "\n" not in str(err.value) and "region grid" in str(err.value)
+
+
 def test_option_kinds_keep_only_the_named_kinds(rubble_options):
     env, every = rubble_options
     some = options_from_graph(env.graph, "chained", env, ("navigate", "triage"))

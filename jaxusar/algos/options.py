@@ -328,6 +328,13 @@ def waiting_cells(solid: np.ndarray, uncleared: np.ndarray, goal: np.ndarray) ->
     return clearing
 
 
+def _in_a_room(graph: RegionGraph, r: int, who: str) -> None:
+    """A ConfigError unless region ``r``, where ``who`` (a victim) lies, is a room: TRIAGE options are rooms'."""
+    if graph.kinds[r] != "room":
+        raise ConfigError(f"{who} in {graph.names[r]!r}, a {graph.kinds[r]}: triage options need a room (mark its "
+                          "cells as a room in the map's region grid)")
+
+
 def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=None,
                        kinds: tuple[str, ...] = ()) -> Options:
     """The options of a map's region graph; with ``env`` (a ``USAREnv``) that holds rubble, also its
@@ -344,14 +351,12 @@ def options_from_graph(graph: RegionGraph, navigation: str = "adjacent", env=Non
     if drawn:  # one TRIAGE-IN-R per room that holds a slot; its flag: the room done
         rooms = sorted(set(graph.victim_region.tolist()), key=list(graph.victim_region).index)
         for k, r in enumerate(rooms):
-            if graph.kinds[r] != "room":
-                raise ValueError(f"a victim may lie in {graph.names[r]!r}, a {graph.kinds[r]}: triage options need a room")
+            _in_a_room(graph, r, "a victim may lie")
             names.append(f"TRIAGE-IN-{room_label(graph.names[r])}")
             kind.append(TRIAGE), region.append(int(r)), victim.append(k)
         slot_flag = np.array([rooms.index(r) for r in graph.victim_region], np.int32)
     for v, r in enumerate([] if drawn else graph.victim_region):
-        if graph.kinds[r] != "room":
-            raise ValueError(f"victim {v} lies in {graph.names[r]!r}, a {graph.kinds[r]}: triage options need a room")
+        _in_a_room(graph, r, f"victim {v} lies")
         in_room = np.flatnonzero(graph.victim_region == r)
         room = graph.names[r]
         if len(in_room) == 1 and room.endswith("_room"):
