@@ -24,7 +24,6 @@ import numpy as np
 from flax import serialization
 
 from jaxusar import algos, config
-from jaxusar.algos import coordinator as coord
 from jaxusar.experiments import hierarchical
 from jaxusar.experiments.train import environment_info, trial_keys
 
@@ -48,17 +47,19 @@ def cost(run: Path, trials: int, sets: list[str], drop_finished: bool = False) -
     b = hierarchical.build(cfg)
     trainer, keys = b["coord_trainer"], trial_keys(cfg.seed, trials)
     trainer.drop_finished |= drop_finished
-    env_params = coord.CoordinatorParams(subpolicy=load_subpolicies(run, trials))
     start = time.perf_counter()
+    env_params = b["coordinator_params"](load_subpolicies(run, trials))
+    tabulated = time.perf_counter()
     state = trainer.init(keys, env_params)
     trainer.compile(state)
     compiled = time.perf_counter()
     state = trainer.train(keys, state=state)
     res = trainer.results(state)
     done = time.perf_counter()
-    return {"trials": trials, "compile_seconds": round(compiled - start, 2), "run_seconds": round(done - compiled, 2),
+    return {"trials": trials, "tabulate_seconds": round(tabulated - start, 2),
+            "compile_seconds": round(compiled - tabulated, 2), "run_seconds": round(done - compiled, 2),
             "episodes_to_optimal": res["episodes_to_optimal"], "best_team_test_steps": res["best_length"].tolist(),
-            "chunks": int(state.chunk)}
+            "best_team_test_return": res["best_return"].tolist(), "chunks": int(state.chunk)}
 
 
 def main() -> None:
@@ -75,7 +76,7 @@ def main() -> None:
         row = cost(args.run, n, args.sets, args.drop_finished)
         base = rows[0]["run_seconds"] if rows else row["run_seconds"]
         eto = [e for e in row["episodes_to_optimal"] if e is not None]
-        print(f"{n:4d} trials: compile {row['compile_seconds']:6.1f} s, run {row['run_seconds']:7.1f} s "
+        print(f"{n:4d} trials: tables {row['tabulate_seconds']:5.1f} s, compile {row['compile_seconds']:6.1f} s, run {row['run_seconds']:7.1f} s "
               f"({row['run_seconds'] / base:5.2f}x the first row), {row['chunks']} chunks; optimal in "
               f"{len(eto)}/{n}, median {np.median(eto) if eto else float('nan'):g} episodes", flush=True)
         rows.append(row)

@@ -63,16 +63,14 @@ def run(map_name: str, kind: str, trials: int, seed: int, overrides: tuple[str, 
     cfg = config.load(None, [f"env.map={map_name}", f"hierarchical.coordinator.kind={kind}", f"seed={seed}",
                              *overrides], defaults=base)
     keys = jax.random.split(jax.random.PRNGKey(seed), trials)
+    b = hierarchical.build(cfg)
     if subpolicies is None:
-        probe = hierarchical.build(cfg)
-        act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
-        b = hierarchical.build(cfg, subpolicy_act=act)
+        tables = sp.exact_subpolicies(b["subtask_env"], b["task_params"])
         params = coord.CoordinatorParams(subpolicy=jnp.broadcast_to(tables, (trials, *tables.shape)))
     else:
-        b = hierarchical.build(cfg)
         if [t.name for t in b["tasks"]] != subpolicies[0]["tasks"]:
             raise SystemExit(f"--subpolicies: its run's sub-tasks are not those of {map_name} with these settings")
-        params = coord.CoordinatorParams(subpolicy=subpolicies[1])
+        params = b["coordinator_params"](subpolicies[1])
     trainer = b["coord_trainer"]
     t = time.perf_counter()
     res = trainer.results(trainer.train(keys, env_params=params))

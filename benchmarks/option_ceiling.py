@@ -32,10 +32,9 @@ def ceiling(map_name: str, sets: tuple[str, ...] = (), limit: int | None = None,
     of one such plan, "reference": the map's, "macro_states": how many were expanded}."""
     cfg = config.load(None, [f"env.map={map_name}", *sets, "hierarchical.coordinator.kind=factored"],
                       defaults=algos.defaults("hierarchical"))
-    probe = hierarchical.build(cfg)
-    act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
-    b = hierarchical.build(cfg, subpolicy_act=act)
-    macro, p = b["macro"], coord.CoordinatorParams(subpolicy=jnp.asarray(tables))
+    b = hierarchical.build(cfg)
+    macro = b["macro"]
+    p = coord.CoordinatorParams(subpolicy=sp.exact_subpolicies(b["subtask_env"], b["task_params"]))
     limit = macro.horizon if limit is None else limit
     step = jax.jit(jax.vmap(lambda s, a: macro.step(None, s, a, p)[1:5:3]))  # (state, info)
     choices = jax.jit(jax.vmap(lambda s: (macro.valid_options(macro.observe(s)),

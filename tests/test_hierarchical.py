@@ -287,8 +287,8 @@ def _oracle_macro(env, navigation, cfg):
     tasks = sp.make_tasks(env, opts, navigation=navigation)
     params = sp.task_params(env, tasks, 0.99, {})
     senv = sp.SubtaskEnv(env, env.horizon, n_goals=max(len(t.goals) for t in tasks))
-    act, sub = sp.exact_subpolicies(senv, params)
-    macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), act,
+    sub = sp.exact_subpolicies(senv, params)
+    macro = coord.MacroEnv(env, opts, sp.policy_table(env, opts, tasks, navigation), sp.table_act(senv),
                            senv.observe, cfg.gamma, cfg.invalid_penalty,
                            cfg.option_timeout or auto_option_timeout(env, opts, tasks, params),
                            factored=cfg.kind == "factored", block_patience=cfg.block_patience, dodge=cfg.dodge,
@@ -339,7 +339,7 @@ def _policy_tables(senv, params, k, noise: float, seed: int):
     roll it out."""
     nxt, hit = (np.asarray(x) for x in planning._single_agent_successors(jnp.asarray(params.solid[k]),
                                                                             jnp.asarray(params.victim_at[k][0])))
-    table = np.asarray(sp.exact_subpolicies(senv, params)[1][k])
+    table = np.asarray(sp.exact_subpolicies(senv, params)[k])
     rng = np.random.default_rng(seed)
     flip = rng.random(table.shape) < noise
     return np.where(flip, rng.integers(0, 4, table.shape), table), nxt, hit
@@ -698,7 +698,7 @@ def test_rubble_subtasks_are_exact_in_every_mode(rubble_options):
     params = sp.task_params(env, tasks, 0.95, {})
     senv = sp.SubtaskEnv(env, env.horizon, "cell")
     assert senv.obs_dim == 10 + 15 + 4 + 1 + 150 + 2  # a cleared flag per rubble cell
-    act, tables = sp.exact_subpolicies(senv, params)
+    act, tables = sp.table_act(senv), sp.exact_subpolicies(senv, params)
     for k, t in enumerate(tasks):
         p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
         assert float(senv.coverage(lambda obs: act(tables[k], obs), p)[0]) == 1.0, t.name
@@ -862,9 +862,55 @@ def _drawn_macro(tmp_path, observation="full"):
     (tmp_path / "drawn.regions.txt").write_text(DRAWN_REGIONS)
     cfg = config.load(None, [f"env.map={tmp_path / 'drawn.txt'}", f"env.observation={observation}"],
                       defaults=coord_defaults())
-    probe = hierarchical.build(cfg)
-    act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
-    return hierarchical.build(cfg, subpolicy_act=act)["macro"], coord.CoordinatorParams(subpolicy=jnp.asarray(tables))
+    b = hierarchical.build(cfg)
+    return b["macro"], coord.CoordinatorParams(subpolicy=sp.exact_subpolicies(b["subtask_env"], b["task_params"]))
+
+
+@pytest.mark.parametrize("map_name", ["two_rooms_rubble", "drawn"])
+def test_the_coordinator_runs_trained_subpolicies_as_tables_of_their_greedy_actions(tmp_path, map_name):
+    """``coordinator_params`` (``sp.greedy_tables``): over the tables, the macro env's decisions take
+    the same primitive steps as over the networks themselves, on a map with rubble modes and one with
+    goal-conditioned TRIAGE-IN-R (random networks, random valid options, two trials)."""
+    import copy
+
+    if map_name == "drawn":
+        (tmp_path / "drawn.txt").write_text(DRAWN)
+        (tmp_path / "drawn.regions.txt").write_text(DRAWN_REGIONS)
+        map_name = str(tmp_path / "drawn.txt")
+    cfg = config.load(None, [f"env.map={map_name}", "hierarchical.coordinator.kind=factored"],
+                      defaults=coord_defaults())
+    b = hierarchical.build(cfg)
+    learner, n_tasks = b["sub_learner"], len(b["tasks"])
+    init = lambda k: jax.tree.map(lambda x: x[None], learner.dqn.network.init(k, jnp.zeros(learner.dqn.input_shape)))
+    nets = jax.vmap(init)(jax.random.split(jax.random.PRNGKey(3), 2 * n_tasks))
+    nets = jax.tree.map(lambda x: x.reshape(2, n_tasks, *x.shape[1:]), nets)  # [trial, task, learner, ...]
+    tables = b["coordinator_params"](nets)
+    assert tables.subpolicy.shape == (2, n_tasks, *b["task_params"].dist.shape[1:])
+    by_table = b["macro"]
+    by_net = copy.copy(by_table)
+    by_net.subpolicy_act = lambda p, obs: learner.greedy_act(p, obs, None)[0]
+    steps = {m: jax.jit(lambda s, a, p, m=m: m.step(None, s, a, p)[1]) for m in (by_table, by_net)}
+    senv, act = b["subtask_env"], sp.table_act(b["subtask_env"])
+    rng = np.random.default_rng(0)
+    for j in range(2):  # state by state: the table's action is the network's
+        one = lambda tree: jax.tree.map(lambda x: x[j], tree)
+        k, index = rng.integers(0, n_tasks, 300), rng.integers(0, tables.subpolicy.shape[2], 300)
+        pos, d = np.stack([rng.integers(0, senv.height, 300), rng.integers(0, senv.width, 300)], -1), rng.integers(0, 4, 300)
+        obs = jax.vmap(senv.observe, in_axes=(0, 0, None, 0))(jnp.asarray(pos), jnp.asarray(d), False, jnp.asarray(index))
+        pick = lambda tree, k: jax.tree.map(lambda x: x[k], tree)
+        want = jax.vmap(lambda k, o: learner.greedy_act(pick(one(nets), k), o, None)[0][0])(jnp.asarray(k), obs)
+        got = jax.vmap(lambda k, o: act(pick(one(tables.subpolicy), k), o)[0])(jnp.asarray(k), obs)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        assert len(set(np.asarray(want).tolist())) >= 3
+        _, s = by_table.reset(jax.random.PRNGKey(j))  # and decision by decision, the same steps
+        s_net = s
+        for _ in range(6):
+            valid = np.asarray(by_table.valid_options(by_table.observe(s)))
+            options = [rng.choice(np.flatnonzero(v)) for v in valid]
+            s = steps[by_table](s, _joint(by_table, options), one(tables))
+            s_net = steps[by_net](s_net, _joint(by_table, options), coord.CoordinatorParams(subpolicy=one(nets)))
+            for a, c in zip(jax.tree.leaves(s), jax.tree.leaves(s_net)):
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
 
 
 def _joint(macro, options) -> jax.Array:
@@ -953,10 +999,9 @@ def test_where_victims_are_drawn_every_test_plays_the_same_draws(tmp_path):
                 "hierarchical.coordinator.learning_starts=100000", "hierarchical.coordinator.stop_at_optimal=false"]
         cfg = config.load(None, sets + ([f"train.test_draws={draws}"] if draws == 1 else []), defaults=coord_defaults())
         assert cfg.train.test_draws == draws  # 8: the map-derived default
-        probe = hierarchical.build(cfg)
-        act, tables = sp.exact_subpolicies(probe["subtask_env"], probe["task_params"])
-        trainer = hierarchical.build(cfg, subpolicy_act=act)["coord_trainer"]
-        p = coord.CoordinatorParams(subpolicy=jnp.asarray(tables)[None])
+        b = hierarchical.build(cfg)
+        trainer = b["coord_trainer"]
+        p = coord.CoordinatorParams(subpolicy=sp.exact_subpolicies(b["subtask_env"], b["task_params"])[None])
         returns[draws] = trainer.results(trainer.train(jax.random.PRNGKey(0)[None], env_params=p))["test_return"][0]
     assert len(set(returns[1].tolist())) > 1 and len(set(returns[8].tolist())) == 1
 

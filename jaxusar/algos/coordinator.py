@@ -10,9 +10,10 @@ paper) has one Q-value per joint option, options ^ medics of them (refused past 
 office would need 15^4 = 50,625); ``factored`` has one option head per medic, their values summed
 (``core.learners.FactoredDQN``, value decomposition), each medic's choice masked to the options it may
 start, so its parameters and compute grow linearly in the medics; both learn from the same SMDP target.
-The agents run their trained sub-policies greedily in the real team env until the first agent's option
-terminates (or the episode ends); then all options terminate and the coordinator decides again: one SMDP
-transition of k steps.
+The agents run their trained sub-policies greedily (as tables of their greedy actions,
+``subpolicies.greedy_tables``: a look-up a step, not a network per agent) in the real team env until the
+first agent's option terminates (or the episode ends); then all options terminate and the coordinator
+decides again: one SMDP transition of k steps.
 
 Decisions left open by the paper, made here:
 

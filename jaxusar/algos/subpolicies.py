@@ -522,12 +522,11 @@ def make_learner(env: SubtaskEnv, cfg: DQNConfig) -> IndependentDQN:
     return IndependentDQN(env.obs_dim, N_ACTIONS, 1, cfg, dqn_target(cfg), row_fn=row, obs_blocks=env.obs_blocks)
 
 
-def exact_subpolicies(senv: SubtaskEnv, params: TaskParams):
-    """Exact sub-policies from the planner's distance tables: ``(act, tables)`` with ``tables``
-    int32[tasks, I, H, W, 4] a shortest-path action per state (the action that ends the task where one
-    does; ties to the lowest) and ``act(table, obs) -> action[1]`` reading (row, col, facing), the
-    rubble flags and the goal index off an observation of ``senv``. In ``MacroEnv``'s place of trained
-    ones, they isolate the coordinator (tests, benchmarks/coordinators.py)."""
+def exact_subpolicies(senv: SubtaskEnv, params: TaskParams) -> jax.Array:
+    """Exact sub-policies from the planner's distance tables: int32[tasks, I, H, W, 4], a shortest-path
+    action per state (the action that ends the task where one does; ties to the lowest), run by
+    ``table_act``. In the trained ones' place (``greedy_tables``) they isolate the coordinator (tests,
+    benchmarks/coordinators.py)."""
     tables = []
     for k in range(len(params.dist)):
         p = jax.tree.map(lambda x: jnp.asarray(x[k]), params)
@@ -539,6 +538,28 @@ def exact_subpolicies(senv: SubtaskEnv, params: TaskParams):
         after, success = np.stack(after, -1), np.stack(success, -1)
         best = np.where(success, -1, np.where(after < 0, 10_000, after))
         tables.append(np.argmin(best, -1).astype(np.int32).reshape(shape))
+    return jnp.asarray(np.stack(tables))
+
+
+def greedy_tables(senv: SubtaskEnv, learner: IndependentDQN, params, n_index: int, batch_dims: int = 1) -> jax.Array:
+    """Trained sub-policies as tables of their greedy actions: ``params`` with ``batch_dims`` leading axes
+    (one per task; [trial, task]: 2) -> int32[*batch, I, H, W, 4] over every goal-and-rubble index
+    (``n_index``), cell and facing, the victim flag unset (a running option's victim is never done: its
+    option would have ended), run by ``table_act``. The coordinator's macro steps then look an action up
+    where they ran a network per agent (benchmarks/README.md, "The coordinator's cost")."""
+    index, rows, cols, dirs = (x.ravel() for x in np.meshgrid(np.arange(n_index), np.arange(senv.height),
+                                                              np.arange(senv.width), np.arange(4), indexing="ij"))
+    obs = jax.vmap(senv.observe, in_axes=(0, 0, None, 0))(jnp.stack([rows, cols], -1), dirs, False, index)
+    batch = jax.tree.leaves(params)[0].shape[:batch_dims]
+    lanes = jax.tree.map(lambda x: jnp.reshape(x, (-1, *x.shape[batch_dims:])), params)
+    greedy = jax.jit(lambda lanes, obs: jax.lax.map(
+        lambda p: jax.vmap(lambda o: learner.greedy_act(p, o, None)[0][0])(obs), lanes))
+    return greedy(lanes, obs).reshape(*batch, n_index, senv.height, senv.width, 4)
+
+
+def table_act(senv: SubtaskEnv):
+    """``act(table, obs) -> action[1]``: the action of one task's table (``exact_subpolicies``,
+    ``greedy_tables``) at the (row, col, facing), rubble flags and goal index of an observation of ``senv``."""
     h, w, n_goals, n_cells = senv.height, senv.width, senv.n_goals, senv.rubble.n_cells
     flags = h + w + 4 + 1 + (h * w if senv.features == "cell" else 0)  # where the rubble flags start
 
@@ -548,4 +569,4 @@ def exact_subpolicies(senv: SubtaskEnv, params: TaskParams):
         mode = jnp.sum(obs[flags:flags + n_cells].astype(jnp.int32) << jnp.arange(n_cells)) if n_cells else 0
         return table[goal * senv.n_modes + mode, r, c, d].reshape(1)
 
-    return act, jnp.asarray(np.stack(tables))
+    return act

@@ -44,10 +44,10 @@ PAGE_TASKS = 8  # sub-policies per page of fig4_subpolicies*.png (office has 23:
 TITLE_PLAN_CHARS = 160  # team_episode.png lists the coordinator's decisions in its title up to this length
 
 
-def build(cfg: ExperimentConfig, subpolicy_act=None):
-    """Everything the two stages need. ``subpolicy_act(params, obs) -> action[1]``: how the coordinator's
-    macro env runs a sub-policy (default: the trained DQN's greedy action; ``sp.exact_subpolicies``
-    gives exact ones)."""
+def build(cfg: ExperimentConfig):
+    """Everything the two stages need. The coordinator's macro env runs its sub-policies as tables of
+    actions: ``coordinator_params(sub_params, batch_dims)`` tabulates trained ones' greedy actions
+    (``sp.greedy_tables``); ``coord.CoordinatorParams(subpolicy=sp.exact_subpolicies(...))`` runs exact ones."""
     world, env, options = setup(cfg)
     h, c = cfg.hierarchical, cfg.hierarchical.coordinator
     tasks = sp.make_tasks(env, options, h.triage_start, h.navigate_start, h.navigation)
@@ -65,7 +65,7 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     table = sp.policy_table(env, options, tasks, h.navigation)
     check_rooms_reachable(env, options, table, h.navigation)
     macro = coord.MacroEnv(env, options, table,
-                           subpolicy_act=subpolicy_act or (lambda p, obs: sub_learner.greedy_act(p, obs, None)[0]),
+                           subpolicy_act=sp.table_act(senv),
                            observe=senv.observe, gamma=c.gamma, invalid_penalty=c.invalid_penalty,
                            option_timeout=c.option_timeout or auto_option_timeout(env, options, tasks, params),
                            factored=c.kind == "factored", block_patience=c.block_patience,
@@ -83,9 +83,11 @@ def build(cfg: ExperimentConfig, subpolicy_act=None):
     coord_trainer = Trainer(macro, coord_learner, coord_train, learning_starts=c.learning_starts, train_every=1,
                             gradient_steps=c.gradient_steps, optimal_steps=optimal, min_episode_steps=1,
                             test_horizon=env.horizon)
+    coordinator_params = lambda sub, batch_dims=2: coord.CoordinatorParams(subpolicy=sp.greedy_tables(
+        senv, sub_learner, sub, params.dist.shape[1], batch_dims))  # [trial, task, ...] params by default
     return dict(env=env, options=options, tasks=tasks, task_params=params, subtask_env=senv, sub_learner=sub_learner,
                 sub_trainer=sub_trainer, macro=macro, coord_learner=coord_learner, coord_trainer=coord_trainer,
-                optimal=optimal, reference=reference)
+                optimal=optimal, reference=reference, coordinator_params=coordinator_params)
 
 
 def slot_tables(options, tasks, params) -> dict:
@@ -155,10 +157,11 @@ def auto_option_timeout(env, options, tasks, params) -> int:
     return max(50, -(-3 * longest // 2))
 
 
-def team_episode(macro: coord.MacroEnv, learner, coord_params, sub_params, key=None):
-    """The greedy coordinator's team episode, primitive step by primitive step (for pictures); ``key``: the
-    reset's (default: the first judging draw, ``scripted.judging_keys``)."""
-    p = coord.CoordinatorParams(subpolicy=sub_params)
+def team_episode(macro: coord.MacroEnv, learner, coord_params, subpolicy, key=None):
+    """The greedy coordinator's team episode over one trial's sub-policy tables, primitive step by
+    primitive step (for pictures); ``key``: the reset's (default: the first judging draw,
+    ``scripted.judging_keys``)."""
+    p = coord.CoordinatorParams(subpolicy=subpolicy)
     decide = jax.jit(lambda obs: macro.options_of(learner.greedy_act(coord_params, obs, None)[0]))
     info = jax.jit(lambda obs: (macro.available(*macro.decode(obs)).any(-1), macro.valid_options(obs)))
     advance = jax.jit(lambda s, o, a, b: macro.advance(s, o, a, b, p))
@@ -320,8 +323,12 @@ class Experiment:
         self.chains = [[
             Stage("hierarchical/subpolicies", b["sub_trainer"], lane_keys.reshape(-1, *keys.shape[1:]), lane_params),
             Stage("hierarchical/coordinator", b["coord_trainer"], keys,
-                  lambda sub: coord.CoordinatorParams(subpolicy=self._by_trial(sub.results["best_params"]))),
+                  lambda sub: self._coordinator_params(sub.results["best_params"])),
         ]]
+
+    def _coordinator_params(self, lanes) -> coord.CoordinatorParams:
+        """The kept sub-policies (lanes [trial * task]) as each trial's greedy tables."""
+        return self.b["coordinator_params"](self._by_trial(lanes))
 
     def _by_trial(self, lanes):
         """A leading [trial * task] lanes axis as [trial, task]."""
@@ -381,13 +388,15 @@ class Experiment:
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }
-        write_outputs(out, b, sub, co, best_sub, metrics, figures)
+        tables = self._coordinator_params(sub_o.results["best_params"])
+        write_outputs(out, b, sub, co, best_sub, tables, metrics, figures)
         for line in summary_lines(metrics, cfg.train.episodes, cfg.hierarchical.coordinator.episodes):
             print(f"[hierarchical] {line}", flush=True)
         return metrics
 
 
-def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict, figures: bool = True) -> None:
+def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, tables: coord.CoordinatorParams, metrics: dict,
+                  figures: bool = True) -> None:
     """curves.csv, params/, and with ``figures`` the figures and ``metrics["best_trial"]`` (its team episode)."""
     tasks, env = b["tasks"], b["env"]
     trials = co["train_return"].shape[0]
@@ -437,7 +446,7 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: di
     j = order[0]
     states, rewards, decisions = team_episode(b["macro"], b["coord_learner"],
                                               jax.tree.map(lambda x: x[j], co["best_params"]),
-                                              jax.tree.map(lambda x: jnp.asarray(x[j]), best_sub))
+                                              tables.subpolicy[j])
     from jaxusar.envs.render import ROLE_WORDS, save_episode_strip
 
     plan = "   ".join(f"{i + 1}) " + ", ".join(f"{ROLE_WORDS[env.roles[a]]} {a}: {o}" for a, o in enumerate(d[:-1]))
