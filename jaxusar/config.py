@@ -501,6 +501,7 @@ def map_defaults(data: dict) -> dict:
       0.72, worst trial 0.59, at gamma 0.95, and 0.74, worst 0.72, at 0.99: episodes run to the horizon, and
       at 0.95 a victim 50 steps off is worth 0.08 of one at hand; 3-decision returns: 0.76, worst 0.72, at
       seed 1000 and 0.75, worst 0.69, at seed 1001, against one decision's 0.74 and 0.68, worst 0.65;
+      with trained sub-policies at seed 1000, 0.76, worst 0.69, against 0.72, worst 0.68;
       benchmarks/README.md, "The paper's method on drawn victims". On the reporting seed 0 with trained
       sub-policies they did not carry, 0.71 against 0.74: results/minimap/README.md);
     - on a map of 512 cells or more, the sub-policies' one-hot input looked up, and for the paper's
