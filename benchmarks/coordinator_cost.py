@@ -3,10 +3,10 @@
 Reads the kept sub-policy params of a finished ``jaxusar train hierarchical`` or ``jaxusar reproduce``
 run (``--run``: its hierarchical folder, with ``params/trial_<j>.msgpack``), and for each ``--trials N``
 trains the coordinator of trials 0..N-1 over them, as the run's stage 2 does (same config, seed and trial
-keys), timing its compile and its training one after the other in one process. Reported per N: seconds,
-the ratio to the smallest N, and what was learned (episodes to optimal per trial), so that two commits'
-rows can be checked for equal results as well as compared for time. Intel Xeon numbers in
-benchmarks/README.md ("The coordinator's cost").
+keys), timing its sub-policy tables, its compile and its training one after the other in one process.
+Reported per N: seconds, the ratio to the smallest N, and what was learned (episodes to optimal and best
+team test per trial), so that two commits' rows can be checked for equal results as well as compared for
+time. Intel Xeon and AMD EPYC numbers in benchmarks/README.md ("The coordinator's cost").
 
     python benchmarks/coordinator_cost.py --run results/two_rooms_64trials/hierarchical --trials 8 32 64
 """
@@ -76,7 +76,8 @@ def main() -> None:
         row = cost(args.run, n, args.sets, args.drop_finished)
         base = rows[0]["run_seconds"] if rows else row["run_seconds"]
         eto = [e for e in row["episodes_to_optimal"] if e is not None]
-        print(f"{n:4d} trials: tables {row['tabulate_seconds']:5.1f} s, compile {row['compile_seconds']:6.1f} s, run {row['run_seconds']:7.1f} s "
+        print(f"{n:4d} trials: tables {row['tabulate_seconds']:5.1f} s, compile {row['compile_seconds']:6.1f} s, "
+              f"run {row['run_seconds']:7.1f} s "
               f"({row['run_seconds'] / base:5.2f}x the first row), {row['chunks']} chunks; optimal in "
               f"{len(eto)}/{n}, median {np.median(eto) if eto else float('nan'):g} episodes", flush=True)
         rows.append(row)
