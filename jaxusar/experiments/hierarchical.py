@@ -323,12 +323,8 @@ class Experiment:
         self.chains = [[
             Stage("hierarchical/subpolicies", b["sub_trainer"], lane_keys.reshape(-1, *keys.shape[1:]), lane_params),
             Stage("hierarchical/coordinator", b["coord_trainer"], keys,
-                  lambda sub: self._coordinator_params(sub.results["best_params"])),
+                  lambda sub: b["coordinator_params"](self._by_trial(sub.results["best_params"]))),
         ]]
-
-    def _coordinator_params(self, lanes) -> coord.CoordinatorParams:
-        """The kept sub-policies (lanes [trial * task]) as each trial's greedy tables."""
-        return self.b["coordinator_params"](self._by_trial(lanes))
 
     def _by_trial(self, lanes):
         """A leading [trial * task] lanes axis as [trial, task]."""
@@ -388,15 +384,13 @@ class Experiment:
             "seconds": {"subpolicies": stage_seconds(sub_o), "coordinator": stage_seconds(co_o)},
             "config": cfg.to_dict(), "config_hash": cfg.hash(), "environment": environment_info(),
         }
-        tables = self._coordinator_params(sub_o.results["best_params"])
-        write_outputs(out, b, sub, co, best_sub, tables, metrics, figures)
+        write_outputs(out, b, sub, co, best_sub, metrics, figures)
         for line in summary_lines(metrics, cfg.train.episodes, cfg.hierarchical.coordinator.episodes):
             print(f"[hierarchical] {line}", flush=True)
         return metrics
 
 
-def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, tables: coord.CoordinatorParams, metrics: dict,
-                  figures: bool = True) -> None:
+def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, metrics: dict, figures: bool = True) -> None:
     """curves.csv, params/, and with ``figures`` the figures and ``metrics["best_trial"]`` (its team episode)."""
     tasks, env = b["tasks"], b["env"]
     trials = co["train_return"].shape[0]
@@ -444,9 +438,9 @@ def write_outputs(out: Path, b: dict, sub: dict, co: dict, best_sub, tables: coo
                                                   metrics["episodes_to_optimal"][j] or 0,
                                                   -co["best_return"][j], co["best_length"][j]))
     j = order[0]
+    tables = b["coordinator_params"](jax.tree.map(lambda x: x[j], best_sub), 1)  # its trial's alone
     states, rewards, decisions = team_episode(b["macro"], b["coord_learner"],
-                                              jax.tree.map(lambda x: x[j], co["best_params"]),
-                                              tables.subpolicy[j])
+                                              jax.tree.map(lambda x: x[j], co["best_params"]), tables.subpolicy)
     from jaxusar.envs.render import ROLE_WORDS, save_episode_strip
 
     plan = "   ".join(f"{i + 1}) " + ", ".join(f"{ROLE_WORDS[env.roles[a]]} {a}: {o}" for a, o in enumerate(d[:-1]))
